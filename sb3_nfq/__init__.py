@@ -1,0 +1,8 @@
+"""sb3-nfq: Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 algorithm."""
+
+from sb3_nfq.nfq import NFQ
+from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy
+
+__version__ = "0.1.0"
+
+__all__ = ["NFQ", "CnnPolicy", "MlpPolicy", "MultiInputPolicy", "NFQPolicy", "__version__"]

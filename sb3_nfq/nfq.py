@@ -1,0 +1,548 @@
+"""Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 off-policy algorithm."""
+
+import io
+import math
+import pathlib
+from collections.abc import Iterator
+from typing import Any, ClassVar, Literal, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.type_aliases import (
+    GymEnv,
+    MaybeCallback,
+    ReplayBufferSamples,
+    Schedule,
+    TrainFreq,
+    TrainFrequencyUnit,
+)
+from stable_baselines3.common.utils import LinearSchedule
+from torch.nn import functional as F
+
+from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
+
+SelfNFQ = TypeVar("SelfNFQ", bound="NFQ")
+
+#: Regression losses NFQ can fit its Q-values with (the textbook uses MSE).
+LOSSES = {"mse": F.mse_loss, "huber": F.smooth_l1_loss}
+LossName = Literal["mse", "huber"]
+
+
+class NFQ(OffPolicyAlgorithm):
+    """
+    Neural Fitted Q-Iteration (NFQ), as presented in chapter 8 of "Grokking Deep Reinforcement Learning"
+    (M. Riedmiller, "Neural Fitted Q Iteration", ECML 2005).
+
+    Each round collects ``train_freq`` fresh transitions with an epsilon-greedy policy, then runs
+    ``gradient_steps`` fitted iterations on them. A fitted iteration recomputes the off-policy TD target
+    ``r + gamma * max_a' Q(s', a')`` with the current network (detached: no gradient flows through it)
+    and takes one gradient step on the loss between ``Q(s, a)`` and the targets over the *whole* round
+    (every transition exactly once). Then the round's transitions are discarded. There is no target network.
+    Episodes that truly terminate bootstrap on 0; time-limit truncations bootstrap on ``Q(s', .)``.
+
+    The book's names map onto SB3's as follows (the defaults are the book's CartPole settings):
+
+    ===============================  =====================================  =========
+    book                             NFQ parameter                          default
+    ===============================  =====================================  =========
+    E, transitions per round         ``train_freq``                         1024
+    K, fitting steps per round       ``gradient_steps``                     40
+    epsilon (constant)               ``exploration_initial_eps`` and        0.5
+                                     ``exploration_final_eps``
+    gamma                            ``gamma``                              1.0
+    RMSprop, lr 0.0005               ``policy_kwargs["optimizer_class"]``,  RMSprop,
+                                     ``learning_rate``                      5e-4
+    hidden layers 512 -> 128, ReLU   ``policy_kwargs["net_arch"]``,         [512, 128],
+                                     ``policy_kwargs["activation_fn"]``     ReLU
+    MSE loss                         ``loss``                               "mse"
+    ===============================  =====================================  =========
+
+    With ``n_envs`` environments, a round takes ``ceil(train_freq / n_envs)`` steps in each of them,
+    so it holds ``train_freq`` transitions rounded up to a multiple of ``n_envs``
+    (e.g. 1026 for ``train_freq=1024`` and 3 envs).
+
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, or a policy class)
+    :param env: The environment to learn from (if registered in Gymnasium, can be str).
+        Its action space must be ``Discrete``.
+    :param learning_rate: The learning rate (the textbook's 5e-4), it can be a function
+        of the current progress remaining (from 1 to 0). For ``th.optim.Rprop`` it is the initial step size.
+    :param train_freq: Transitions collected per round (the book's E), counted over all envs.
+        Alternatively pass a tuple ``(n, "episode")`` to collect ``n`` whole episodes per round (one env only;
+        needs ``buffer_size``). ``(n, "step")`` is the same as ``n``.
+    :param gradient_steps: Fitted iterations per round (the book's K): each recomputes the targets
+        and takes one optimizer step on the whole round (or one epoch of mini-batches, see ``batch_size``).
+    :param batch_size: ``None`` (default, the textbook): each fitted iteration is one full-batch gradient step.
+        An integer splits each fitted iteration into one shuffled epoch of mini-batches of this size,
+        recomputing the targets of each mini-batch before its step.
+    :param buffer_size: Most transitions one round may hold. ``None`` (default): exactly one round of
+        ``train_freq`` transitions. Required when ``train_freq`` counts episodes.
+    :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
+    :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
+    :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from
+        ``exploration_initial_eps`` to ``exploration_final_eps``, in (0, 1]
+    :param exploration_initial_eps: Initial probability of a random action while collecting
+    :param exploration_final_eps: Final probability of a random action while collecting
+    :param max_grad_norm: Clip the gradient norm to this value; ``None`` (textbook): no clipping
+    :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
+        the reported success rate, mean episode length, and mean reward over
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
+    :param policy_kwargs: additional arguments to be passed to the policy on creation
+        (``net_arch``, ``activation_fn``, ``optimizer_class``, ``optimizer_kwargs``, features extractor, ...)
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
+        debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run.
+        Setting it to auto, the code will be run on the GPU if possible.
+    :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+    exploration_schedule: Schedule
+    q_net: QNetwork
+    policy: NFQPolicy
+    replay_buffer: ReplayBuffer
+
+    def __init__(
+        self,
+        policy: str | type[NFQPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 5e-4,
+        train_freq: int | tuple[int, str] = 1024,
+        gradient_steps: int = 40,
+        batch_size: int | None = None,
+        buffer_size: int | None = None,
+        gamma: float = 1.0,
+        loss: LossName = "mse",
+        exploration_fraction: float = 0.1,
+        exploration_initial_eps: float = 0.5,
+        exploration_final_eps: float = 0.5,
+        max_grad_norm: float | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        _check_hyperparameters(
+            learning_rate=learning_rate,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            batch_size=batch_size,
+            buffer_size=buffer_size,
+            gamma=gamma,
+            loss=loss,
+            exploration_fraction=exploration_fraction,
+            exploration_initial_eps=exploration_initial_eps,
+            exploration_final_eps=exploration_final_eps,
+            max_grad_norm=max_grad_norm,
+        )
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,  # type: ignore[arg-type]  # None: one round, resolved in _make_memory
+            learning_starts=0,
+            batch_size=batch_size,  # type: ignore[arg-type]  # None: full batch
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            action_noise=None,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            sde_support=False,
+            supported_action_spaces=None,  # checked in _setup_model, with a clearer error than SB3's assert
+            support_multi_env=True,
+        )
+        self.loss = loss
+        self.exploration_initial_eps = exploration_initial_eps
+        self.exploration_final_eps = exploration_final_eps
+        self.exploration_fraction = exploration_fraction
+        self.max_grad_norm = max_grad_norm
+        # Probability of a random action while collecting ("epsilon" of epsilon-greedy)
+        self.exploration_rate = exploration_initial_eps
+        self._n_rounds = 0
+
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_model(self) -> None:
+        _check_action_space(self.action_space)
+        self._convert_train_freq()
+        if self.replay_buffer is None:
+            self.replay_buffer = self._make_memory()
+        super()._setup_model()
+        self.q_net = self.policy.q_net
+        self.exploration_schedule = LinearSchedule(
+            self.exploration_initial_eps,
+            self.exploration_final_eps,
+            self.exploration_fraction,
+        )
+
+    def _round_length(self) -> TrainFreq:
+        """
+        :return: How much one round collects, in ``env.step()`` calls (each gives ``n_envs`` transitions) or episodes.
+        """
+        assert isinstance(self.train_freq, TrainFreq)
+        if self.train_freq.unit == TrainFrequencyUnit.EPISODE:
+            return self.train_freq
+        return TrainFreq(math.ceil(self.train_freq.frequency / self.n_envs), TrainFrequencyUnit.STEP)
+
+    def _make_memory(self) -> ReplayBuffer:
+        """
+        Create the transition memory that holds one round: SB3's replay buffer, read in order, never sampled.
+        It keeps ``terminated`` and time-limit truncation apart (``handle_timeout_termination``).
+
+        :return: An empty replay buffer for ``self.n_envs`` environments.
+        """
+        round_length = self._round_length()
+        assert isinstance(self.train_freq, TrainFreq)
+        asked = f"train_freq=({self.train_freq.frequency}, {self.train_freq.unit.value!r})"
+        if round_length.unit == TrainFrequencyUnit.EPISODE:
+            if self.n_envs > 1:
+                raise ValueError(
+                    f"{asked} counts episodes, which needs a single environment; "
+                    f"got n_envs={self.n_envs}. Count transitions instead, e.g. train_freq=1024."
+                )
+            if self.buffer_size is None:
+                raise ValueError(
+                    f"{asked} counts episodes, so NFQ cannot know how many transitions a round "
+                    "holds: pass buffer_size, the most transitions one round may hold (e.g. buffer_size=100_000)."
+                )
+            capacity = self.buffer_size
+        else:
+            round_transitions = round_length.frequency * self.n_envs
+            if self.buffer_size is not None and self.buffer_size < round_transitions:
+                raise ValueError(
+                    f"buffer_size={self.buffer_size} is smaller than one round of {round_transitions} transitions "
+                    f"({asked} with n_envs={self.n_envs}); use buffer_size=None or a larger value."
+                )
+            capacity = self.buffer_size or round_transitions
+        buffer_class: type[ReplayBuffer] = (
+            DictReplayBuffer if isinstance(self.observation_space, spaces.Dict) else ReplayBuffer
+        )
+        self.replay_buffer_class = buffer_class
+        return buffer_class(
+            capacity,
+            self.observation_space,
+            self.action_space,
+            device=self.device,
+            n_envs=self.n_envs,
+            handle_timeout_termination=True,
+        )
+
+    def learn(
+        self: SelfNFQ,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "NFQ",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfNFQ:
+        """
+        Train NFQ for (at least) ``total_timesteps`` environment steps, in whole rounds.
+
+        :param total_timesteps: The total number of environment steps to train on; the last round is
+            completed, so training may run up to one round past it.
+        :param callback: callback(s) called at every step with state of the algorithm.
+        :param log_interval: Log data every ``log_interval`` episodes
+        :param tb_log_name: the name of the run for TensorBoard logging
+        :param reset_num_timesteps: whether or not to reset the current timestep number (used in logging)
+        :param progress_bar: Display a progress bar using tqdm and rich.
+        :return: the trained model
+        """
+        total_timesteps, callback = self._setup_learn(
+            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+        )
+        callback.on_training_start(locals(), globals())
+        assert self.env is not None
+
+        while self.num_timesteps < total_timesteps:
+            # 1. Collect a round of fresh transitions with the epsilon-greedy policy.
+            self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)
+            rollout = self.collect_rollouts(
+                self.env,
+                callback=callback,
+                train_freq=self._round_length(),
+                replay_buffer=self.replay_buffer,
+                log_interval=log_interval,
+            )
+            if rollout.continue_training:
+                if rollout.episode_timesteps > self.replay_buffer.buffer_size * self.n_envs:
+                    raise ValueError(
+                        f"Round {self._n_rounds + 1} collected {rollout.episode_timesteps} transitions, more than "
+                        f"buffer_size={self.buffer_size} holds; raise buffer_size."
+                    )
+                # 2. Fit: gradient_steps fitted iterations on the whole round.
+                self.train(gradient_steps=self.gradient_steps, batch_size=self.batch_size)
+            # 3. Discard the round's transitions (a round cut short by a callback is discarded too).
+            self.replay_buffer.reset()
+            if not rollout.continue_training:
+                break
+
+        callback.on_training_end()
+        return self
+
+    def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
+        """
+        Run ``gradient_steps`` fitted iterations on all transitions of the round.
+
+        :param gradient_steps: Number of fitted iterations (the book's K)
+        :param batch_size: ``None``: one full-batch step per iteration; else one epoch of mini-batches of this size
+        """
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        batch = self._stored_transitions()
+        loss_fn = LOSSES[self.loss]
+        self._n_rounds += 1
+
+        losses = []
+        for iteration in range(gradient_steps):
+            for data in _epoch(batch, batch_size):
+                # The TD target is a constant for the gradient step: computed with no graph.
+                with th.no_grad():
+                    next_q_values = self.q_net(data.next_observations).max(dim=1).values.reshape(-1, 1)
+                    target_q_values = data.rewards + (1 - data.dones) * self.gamma * next_q_values
+                current_q_values = th.gather(self.q_net(data.observations), dim=1, index=data.actions.long())
+                loss = loss_fn(current_q_values, target_q_values)
+
+                loss_value = loss.item()
+                if not math.isfinite(loss_value):
+                    raise FloatingPointError(
+                        f"NFQ loss became {loss_value} in round {self._n_rounds} "
+                        f"(fitted iteration {iteration + 1}/{gradient_steps}, after {self.num_timesteps} env steps); "
+                        "training stopped before that step was applied. Check the rewards and observations for "
+                        "NaN/inf, or lower learning_rate, use loss='huber' or set max_grad_norm."
+                    )
+                losses.append(loss_value)
+
+                self.policy.optimizer.zero_grad()
+                loss.backward()
+                if self.max_grad_norm is not None:
+                    th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+                self.policy.optimizer.step()
+                self._n_updates += 1
+
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/n_rounds", self._n_rounds, exclude="tensorboard")
+        self.logger.record("train/batch_transitions", len(batch.rewards))
+        self.logger.record("train/loss", float(np.mean(losses)))
+        self.logger.record("train/q_mean", current_q_values.mean().item())
+        self.logger.record("train/td_target_mean", target_q_values.mean().item())
+
+    def _stored_transitions(self) -> ReplayBufferSamples:
+        """
+        :return: Every transition in the memory, in collection order (step-major, then env), as tensors.
+            ``dones`` is 1 only for true terminations: time-limit truncations bootstrap.
+        """
+        buffer = self.replay_buffer
+        n_rows = buffer.buffer_size if buffer.full else buffer.pos
+        env = self._vec_normalize_env
+
+        def flat(array: np.ndarray) -> np.ndarray:
+            return array[:n_rows].reshape(n_rows * buffer.n_envs, *array.shape[2:])
+
+        def flat_obs(obs: np.ndarray | dict[str, np.ndarray]) -> Any:
+            if isinstance(obs, dict):
+                normalized = buffer._normalize_obs({key: flat(value) for key, value in obs.items()}, env)
+                assert isinstance(normalized, dict)
+                return {key: buffer.to_torch(value) for key, value in normalized.items()}
+            return buffer.to_torch(buffer._normalize_obs(flat(obs), env))  # type: ignore[arg-type]
+
+        terminated = flat(buffer.dones) * (1 - flat(buffer.timeouts))
+        return ReplayBufferSamples(
+            observations=flat_obs(buffer.observations),
+            actions=buffer.to_torch(flat(buffer.actions)),
+            next_observations=flat_obs(buffer.next_observations),
+            dones=buffer.to_torch(terminated.reshape(-1, 1)),
+            rewards=buffer.to_torch(buffer._normalize_reward(flat(buffer.rewards).reshape(-1, 1), env)),
+        )
+
+    def _on_step(self) -> None:
+        """Update the exploration rate; called by ``collect_rollouts()`` after each environment step."""
+        self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)
+        self.logger.record("rollout/exploration_rate", self.exploration_rate)
+
+    def predict(
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """
+        Get the action(s) for observation(s): greedy if ``deterministic``, else epsilon-greedy,
+        with an independent coin flip for each observation of a batch (``epsilon = self.exploration_rate``).
+
+        :param observation: the input observation (or a batch of them)
+        :param state: The last states (unused, for recurrent policies)
+        :param episode_start: The last masks (unused, for recurrent policies)
+        :param deterministic: Whether to return the greedy action(s)
+        :return: the model's action(s) and the next state (unused)
+        """
+        if deterministic or self.exploration_rate <= 0:
+            return self.policy.predict(observation, state, episode_start, deterministic=True)
+        vectorized = self.policy.is_vectorized_observation(observation)
+        if isinstance(observation, dict):
+            n_obs = len(next(iter(observation.values()))) if vectorized else 1
+        else:
+            n_obs = len(observation) if vectorized else 1
+        assert isinstance(self.action_space, spaces.Discrete)
+        explore = np.random.rand(n_obs) < self.exploration_rate
+        actions = np.random.randint(int(self.action_space.n), size=n_obs)
+        if not explore.all():  # the network is only needed where some observation acts greedily
+            greedy_actions, _ = self.policy.predict(observation, state, episode_start, deterministic=True)
+            actions = np.where(explore, actions, np.reshape(greedy_actions, n_obs))
+        return (actions if vectorized else actions[0]), state
+
+    @classmethod
+    def load(
+        cls: type[SelfNFQ],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfNFQ:
+        """
+        Load an NFQ model from a zip file saved by :meth:`save`; anything else raises a ``ValueError``.
+        See :meth:`stable_baselines3.common.base_class.BaseAlgorithm.load` for the parameters.
+
+        :param path: path to the file (or a file-like) where to load the agent from
+        :param env: the new environment to run the loaded model on
+        :param device: Device on which the code should run.
+        :param custom_objects: Dictionary of objects to replace upon loading.
+        :param print_system_info: Whether to print system info from the saved model
+        :param force_reset: Force call to ``reset()`` before training
+        :param kwargs: extra arguments to change the model when loading
+        :return: new model instance with loaded parameters
+        """
+        _check_nfq_checkpoint(path, custom_objects)
+        return super().load(
+            path,
+            env=env,
+            device=device,
+            custom_objects=custom_objects,
+            print_system_info=print_system_info,
+            force_reset=force_reset,
+            **kwargs,
+        )
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "q_net"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        return ["policy", "policy.optimizer"], []
+
+
+def _epoch(batch: ReplayBufferSamples, batch_size: int | None) -> Iterator[ReplayBufferSamples]:
+    """
+    :param batch: All transitions of the round
+    :param batch_size: ``None`` for the whole batch at once, else the mini-batch size
+    :return: The batch itself, or one shuffled epoch of mini-batches covering every transition once.
+    """
+    n_transitions = len(batch.rewards)
+    if batch_size is None or batch_size >= n_transitions:
+        yield batch
+        return
+    for indices in th.randperm(n_transitions, device=batch.rewards.device).split(batch_size):
+        yield ReplayBufferSamples(*(_take(field, indices) for field in batch))
+
+
+def _take(field: Any, indices: th.Tensor) -> Any:
+    if field is None:  # ReplayBufferSamples.discounts, unused by NFQ
+        return None
+    if isinstance(field, dict):
+        return {key: value[indices] for key, value in field.items()}
+    return field[indices]
+
+
+def _check_action_space(action_space: spaces.Space | None) -> None:
+    if not isinstance(action_space, spaces.Discrete):
+        raise ValueError(
+            "NFQ supports only Discrete action spaces (its network outputs one Q-value per action), "
+            f"got {action_space}. For Box action spaces use SAC or TD3; "
+            "for MultiDiscrete, wrap the env to flatten its actions."
+        )
+    if int(action_space.start) != 0:
+        raise ValueError(
+            f"NFQ supports Discrete action spaces that start at 0, got {action_space} (start={action_space.start}). "
+            "Wrap the env so that its actions are 0..n-1."
+        )
+
+
+def _check_hyperparameters(
+    learning_rate: float | Schedule,
+    train_freq: int | tuple[int, str],
+    gradient_steps: int,
+    batch_size: int | None,
+    buffer_size: int | None,
+    gamma: float,
+    loss: str,
+    exploration_fraction: float,
+    exploration_initial_eps: float,
+    exploration_final_eps: float,
+    max_grad_norm: float | None,
+) -> None:
+    """Fail early, naming the parameter and its allowed values."""
+    if not callable(learning_rate) and not learning_rate > 0:
+        raise ValueError(f"learning_rate must be a positive number or a schedule, got {learning_rate!r}")
+    frequency, unit = train_freq if isinstance(train_freq, tuple) else (train_freq, "step")
+    if not isinstance(frequency, int) or isinstance(frequency, bool) or frequency <= 0:
+        raise ValueError(f"train_freq (transitions per round) must be a positive integer, got {frequency!r}")
+    if unit not in ("step", "episode"):
+        raise ValueError(f"the unit of train_freq must be 'step' or 'episode', got {unit!r}")
+    for name, value in (("gradient_steps", gradient_steps), ("batch_size", batch_size), ("buffer_size", buffer_size)):
+        if value is None and name != "gradient_steps":
+            continue
+        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if not 0.0 <= gamma <= 1.0:
+        raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {sorted(LOSSES)}, got {loss!r}")
+    if not 0.0 < exploration_fraction <= 1.0:
+        raise ValueError(f"exploration_fraction must be in (0, 1], got {exploration_fraction!r}")
+    for name, eps in (
+        ("exploration_initial_eps", exploration_initial_eps),
+        ("exploration_final_eps", exploration_final_eps),
+    ):
+        if not 0.0 <= eps <= 1.0:
+            raise ValueError(f"{name} must be a probability in [0, 1], got {eps!r}")
+    if max_grad_norm is not None and not max_grad_norm > 0:
+        raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")
+
+
+def _check_nfq_checkpoint(path: str | pathlib.Path | io.BufferedIOBase, custom_objects: dict[str, Any] | None) -> None:
+    """Raise a ``ValueError`` unless ``path`` holds a model saved by ``NFQ.save``."""
+    start = path.tell() if isinstance(path, io.BufferedIOBase) else None
+    try:
+        data, _, _ = load_from_zip_file(path, load_data=True, custom_objects=custom_objects, device="cpu")
+    except FileNotFoundError:
+        raise
+    except Exception as error:
+        raise ValueError(f"{path} is not an NFQ checkpoint (a zip saved by NFQ.save): {error}") from error
+    finally:
+        if start is not None:
+            path.seek(start)  # type: ignore[union-attr]
+    policy_class = (data or {}).get("policy_class")
+    if not (isinstance(policy_class, type) and issubclass(policy_class, NFQPolicy)):
+        found = getattr(policy_class, "__name__", policy_class)
+        raise ValueError(f"{path} is not an NFQ checkpoint: it holds a {found} policy, not an NFQ policy")

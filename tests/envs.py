@@ -1,0 +1,87 @@
+"""Small real gymnasium environments for the tests (image and Dict observations, broken rewards)."""
+
+from typing import Any, SupportsFloat
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+
+class LineWorld(gym.Env):
+    """
+    A walk on a line of ``size`` cells: start in the middle, reach the right end (+1) or fall off the left (-1).
+    Actions: 0 = left, 1 = right. Observations come as an image or a Dict, to exercise the policy aliases.
+
+    :param observation: ``"image"`` (36x36x1 uint8, the position as a bright column) or ``"dict"``
+        (``{"position": one-hot Box, "steps": Discrete}``)
+    :param size: number of cells
+    :param max_steps: episode length at which the episode is truncated
+    """
+
+    def __init__(self, observation: str = "image", size: int = 6, max_steps: int = 20) -> None:
+        self.kind = observation
+        self.size = size
+        self.max_steps = max_steps
+        self.action_space = spaces.Discrete(2)
+        if observation == "image":
+            self.observation_space: spaces.Space = spaces.Box(0, 255, shape=(36, 36, 1), dtype=np.uint8)
+        elif observation == "dict":
+            self.observation_space = spaces.Dict(
+                {
+                    "position": spaces.Box(0.0, 1.0, shape=(size,), dtype=np.float32),
+                    "steps": spaces.Discrete(max_steps + 1),
+                }
+            )
+        else:
+            raise ValueError(f"observation must be 'image' or 'dict', got {observation!r}")
+        self.position = size // 2
+        self.steps = 0
+
+    def _observation(self) -> Any:
+        if self.kind == "image":
+            image = np.zeros((36, 36, 1), dtype=np.uint8)
+            column = self.position * 36 // self.size
+            image[:, column : column + 36 // self.size] = 255
+            return image
+        one_hot = np.zeros(self.size, dtype=np.float32)
+        one_hot[self.position] = 1.0
+        return {"position": one_hot, "steps": self.steps}
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        super().reset(seed=seed)
+        self.position = self.size // 2
+        self.steps = 0
+        return self._observation(), {}
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        self.position += 1 if int(action) == 1 else -1
+        self.steps += 1
+        terminated = self.position in (0, self.size - 1)
+        reward = 0.0
+        if self.position == self.size - 1:
+            reward = 1.0
+        elif self.position == 0:
+            reward = -1.0
+        truncated = not terminated and self.steps >= self.max_steps
+        return self._observation(), reward, terminated, truncated, {}
+
+
+class NaNRewardAfter(gym.Wrapper):
+    """
+    Return NaN rewards after ``n_steps`` steps, to check that NFQ stops on a non-finite loss.
+
+    :param env: the environment to wrap
+    :param n_steps: number of finite-reward steps before the NaNs start
+    """
+
+    def __init__(self, env: gym.Env, n_steps: int) -> None:
+        super().__init__(env)
+        self.n_steps = n_steps
+        self.steps_taken = 0
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.steps_taken += 1
+        if self.steps_taken > self.n_steps:
+            reward = float("nan")
+        return obs, reward, terminated, truncated, info

@@ -1,0 +1,200 @@
+"""The NFQ loop: rounds of fresh transitions, K full-batch fitted iterations, detached targets, bootstrapping."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from sb3_nfq import NFQ
+from tests.conftest import TransitionRecorder, record_fitting
+
+
+@pytest.mark.parametrize("n_envs", [1, 3])
+def test_each_round_fits_gradient_steps_times_on_exactly_its_own_transitions(n_envs: int) -> None:
+    env = make_vec_env("CartPole-v1", n_envs=n_envs, seed=0)
+    model = NFQ("MlpPolicy", env, train_freq=64, gradient_steps=5, seed=0)
+    steps_per_round = -(-64 // n_envs)  # ceil: a round is rounded up to a multiple of n_envs
+    round_size = steps_per_round * n_envs
+    fitting = record_fitting(model)
+    recorder = TransitionRecorder()
+
+    model.learn(2 * round_size, callback=recorder)
+
+    assert model.num_timesteps == 2 * round_size
+    assert fitting.optimizer_steps == 2 * 5
+    assert model._n_updates == 2 * 5
+    assert len(fitting.grad_inputs) == 2 * 5
+    for round_index in range(2):
+        expected_obs, _, _ = recorder.transitions(round_index * steps_per_round, (round_index + 1) * steps_per_round)
+        for fitted_iteration in range(5):
+            fitted_obs = fitting.grad_inputs[round_index * 5 + fitted_iteration].numpy()
+            # every transition of this round exactly once, in order, and nothing from another round
+            np.testing.assert_array_equal(fitted_obs, expected_obs)
+    # the targets are computed on the same full batch (next observations), without gradient
+    assert fitting.no_grad_batch_sizes.count(round_size) >= 2 * 5
+
+
+def test_round_is_discarded_after_fitting() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=32, gradient_steps=2, seed=0)
+    model.learn(64)
+    assert model.replay_buffer.size() == 0
+    assert model._n_rounds == 2
+
+
+def test_batch_size_splits_each_fitted_iteration_into_one_epoch_of_minibatches() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=3, batch_size=16, seed=0)
+    fitting = record_fitting(model)
+    recorder = TransitionRecorder()
+    model.learn(64, callback=recorder)
+
+    assert fitting.optimizer_steps == 3 * 4
+    expected_obs, _, _ = recorder.transitions(0, 64)
+    for fitted_iteration in range(3):
+        epoch = th.cat(fitting.grad_inputs[fitted_iteration * 4 : (fitted_iteration + 1) * 4]).numpy()
+        assert [len(batch) for batch in fitting.grad_inputs[fitted_iteration * 4 : (fitted_iteration + 1) * 4]] == [
+            16
+        ] * 4
+        # the epoch covers every transition exactly once
+        np.testing.assert_array_equal(np.sort(epoch, axis=0), np.sort(expected_obs, axis=0))
+
+
+def _store(model: NFQ, obs: np.ndarray, action: int, reward: float, next_obs: np.ndarray, end: str) -> None:
+    """Add one transition as SB3's collection stores it: ``end`` is "none", "terminated" or "truncated"."""
+    infos = [{"TimeLimit.truncated": end == "truncated"}]
+    model.replay_buffer.add(
+        obs[None], next_obs[None], np.array([[action]]), np.array([reward]), np.array([end != "none"]), infos
+    )
+
+
+def _one_fitted_step_update(model: NFQ) -> list[th.Tensor]:
+    before = [p.detach().clone() for p in model.q_net.parameters()]
+    model.train(gradient_steps=1, batch_size=None)
+    return [after.detach() - start for after, start in zip(model.q_net.parameters(), before, strict=True)]
+
+
+def _expected_sgd_update(
+    model: NFQ, net_params: list[th.Tensor], terminated: th.Tensor, detach: bool
+) -> list[th.Tensor]:
+    """Redo the fitted step by hand on a copy of the network (SGD, lr=1): the update is minus the gradient."""
+    data = model._stored_transitions()
+    q_net = model.policy.make_q_net()
+    with th.no_grad():
+        for param, value in zip(q_net.parameters(), net_params, strict=True):
+            param.copy_(value)
+    next_q = q_net(data.next_observations).max(dim=1).values.reshape(-1, 1)
+    if detach:
+        next_q = next_q.detach()
+    target = data.rewards + (1 - terminated) * model.gamma * next_q
+    q_sa = th.gather(q_net(data.observations), 1, data.actions.long())
+    loss = th.nn.functional.mse_loss(q_sa, target)
+    grads = th.autograd.grad(loss, list(q_net.parameters()))
+    return [-g for g in grads]
+
+
+def _crafted_model() -> tuple[NFQ, list[th.Tensor]]:
+    model = NFQ(
+        "MlpPolicy",
+        "CartPole-v1",
+        train_freq=3,
+        gamma=0.9,
+        seed=1,
+        policy_kwargs={"optimizer_class": th.optim.SGD, "net_arch": [8]},
+        learning_rate=1.0,
+    )
+    model.set_logger(Logger(folder=None, output_formats=[]))  # train() outside learn() needs a logger
+    rng = np.random.default_rng(0)
+    states = rng.normal(size=(6, 4)).astype(np.float32)
+    _store(model, states[0], 0, 1.0, states[1], "none")
+    _store(model, states[2], 1, 1.0, states[3], "terminated")
+    _store(model, states[4], 1, 1.0, states[5], "truncated")
+    params = [p.detach().clone() for p in model.q_net.parameters()]
+    return model, params
+
+
+def test_terminated_bootstraps_zero_and_truncated_bootstraps_next_q() -> None:
+    model, params = _crafted_model()
+    data = model._stored_transitions()
+    assert data.dones.flatten().tolist() == [0.0, 1.0, 0.0]
+
+    right = _expected_sgd_update(model, params, th.tensor([[0.0], [1.0], [0.0]]), detach=True)
+    truncation_as_termination = _expected_sgd_update(model, params, th.tensor([[0.0], [1.0], [1.0]]), detach=True)
+    no_termination = _expected_sgd_update(model, params, th.tensor([[0.0], [0.0], [0.0]]), detach=True)
+    for wrong in (truncation_as_termination, no_termination):
+        assert any(not th.allclose(a, b) for a, b in zip(right, wrong, strict=True))
+
+    update = _one_fitted_step_update(model)
+    for got, expected in zip(update, right, strict=True):
+        th.testing.assert_close(got, expected, rtol=1e-4, atol=1e-6)
+
+
+def test_gradient_flows_only_through_q_of_s_a_not_through_the_target() -> None:
+    model, params = _crafted_model()
+    terminated = model._stored_transitions().dones
+    detached = _expected_sgd_update(model, params, terminated, detach=True)
+    through_target = _expected_sgd_update(model, params, terminated, detach=False)
+    # the two candidate updates differ, so this test can tell them apart
+    assert any(not th.allclose(a, b) for a, b in zip(detached, through_target, strict=True))
+
+    update = _one_fitted_step_update(model)
+    for got, expected in zip(update, detached, strict=True):
+        th.testing.assert_close(got, expected, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("n_envs", [1, 2])
+def test_time_limit_truncation_is_not_termination_in_real_envs(n_envs: int) -> None:
+    # CartPole cut at 5 steps: with a random policy most episodes are truncated, few terminate.
+    env = DummyVecEnv([lambda: gym.make("CartPole-v1", max_episode_steps=5) for _ in range(n_envs)])
+    model = NFQ(
+        "MlpPolicy",
+        env,
+        train_freq=200,
+        gradient_steps=1,
+        exploration_initial_eps=1.0,
+        exploration_final_eps=1.0,
+        seed=0,
+    )
+    episode_ends: list[tuple[bool, bool]] = []
+
+    captured: dict[str, ReplayBufferSamples] = {}
+
+    class EndRecorder(BaseCallback):
+        def _on_rollout_end(self) -> None:
+            # called at the end of collection, right before fitting on the round
+            captured["data"] = model._stored_transitions()
+
+        def _on_step(self) -> bool:
+            for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
+                truncated = bool(info.get("TimeLimit.truncated", False))
+                episode_ends.append((bool(done) and not truncated, truncated))
+            return True
+
+    model.learn(200, callback=EndRecorder())
+
+    terminated_flags = captured["data"].dones.flatten().numpy()
+    expected_terminated = np.array([terminated for terminated, _ in episode_ends], dtype=np.float32)
+    assert any(truncated for _, truncated in episode_ends)
+    np.testing.assert_array_equal(terminated_flags, expected_terminated)
+
+
+@pytest.mark.parametrize("n_envs", [1, 2, 3, 5])
+def test_round_size_is_train_freq_rounded_up_to_a_multiple_of_n_envs(n_envs: int) -> None:
+    env = make_vec_env("CartPole-v1", n_envs=n_envs, seed=0)
+    model = NFQ("MlpPolicy", env, train_freq=64, gradient_steps=1, seed=0)
+    fitting = record_fitting(model)
+    model.learn(1)
+    expected = -(-64 // n_envs) * n_envs
+    assert [len(x) for x in fitting.grad_inputs] == [expected]
+    assert model.num_timesteps == expected
+
+
+def test_episode_rounds_collect_whole_episodes() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=(3, "episode"), buffer_size=5_000, gradient_steps=2, seed=0)
+    fitting = record_fitting(model)
+    model.learn(1)
+    assert model._episode_num == 3
+    assert [len(x) for x in fitting.grad_inputs] == [model.num_timesteps] * 2

@@ -1,0 +1,113 @@
+"""Checkpoints: save -> load gives the same agent, optimizer state included, and training resumes."""
+
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3 import DQN
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_nfq import NFQ
+from tests.conftest import record_fitting
+
+
+@pytest.fixture
+def trained(tmp_path: Path) -> tuple[NFQ, Path]:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=3, seed=0)
+    model.learn(128)
+    path = tmp_path / "nfq.zip"
+    model.save(path)
+    return model, path
+
+
+def test_loaded_model_predicts_the_same_actions_and_q_values(trained: tuple[NFQ, Path]) -> None:
+    model, path = trained
+    loaded = NFQ.load(path)
+    obs = np.random.default_rng(0).normal(size=(200, 4)).astype(np.float32)
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+    th.testing.assert_close(loaded.q_net(th.as_tensor(obs)), model.q_net(th.as_tensor(obs)))
+    assert loaded.q_net is loaded.policy.q_net
+    assert (loaded.train_freq, loaded.gradient_steps, loaded.loss) == (model.train_freq, 3, "mse")
+    assert loaded._n_rounds == 2 and loaded._n_updates == 6
+
+
+def test_optimizer_state_survives_save_and_load(trained: tuple[NFQ, Path]) -> None:
+    model, path = trained
+    loaded = NFQ.load(path)
+    saved_state = model.policy.optimizer.state_dict()
+    loaded_state = loaded.policy.optimizer.state_dict()
+    assert isinstance(loaded.policy.optimizer, th.optim.RMSprop)
+    assert saved_state["param_groups"] == loaded_state["param_groups"]
+    assert len(saved_state["state"]) == len(loaded_state["state"]) > 0
+    for index, state in saved_state["state"].items():
+        assert th.count_nonzero(state["square_avg"]) > 0
+        th.testing.assert_close(loaded_state["state"][index]["square_avg"], state["square_avg"])
+
+
+def test_training_resumes_identically_after_load(trained: tuple[NFQ, Path]) -> None:
+    model, path = trained
+    env = make_vec_env("CartPole-v1", n_envs=1, seed=3)
+    loaded = NFQ.load(path, env=env)
+    fitting = record_fitting(loaded)
+    loaded.learn(64, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 192 and loaded._n_rounds == 3
+    assert fitting.optimizer_steps == 3
+
+    # same parameters, same optimizer state, same data -> same update as the original model
+    model.set_env(make_vec_env("CartPole-v1", n_envs=1, seed=3))
+    model.set_random_seed(5)
+    model.learn(64, reset_num_timesteps=False)
+    again = NFQ.load(path, env=make_vec_env("CartPole-v1", n_envs=1, seed=3))
+    again.set_random_seed(5)
+    again.learn(64, reset_num_timesteps=False)
+    for a, b in zip(model.q_net.parameters(), again.q_net.parameters(), strict=True):
+        th.testing.assert_close(a, b)
+
+
+def test_set_parameters_set_env_and_load_on_more_envs(trained: tuple[NFQ, Path]) -> None:
+    model, path = trained
+    fresh = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=3, seed=1)
+    fresh.set_parameters(str(path))
+    obs = np.random.default_rng(1).normal(size=(50, 4)).astype(np.float32)
+    np.testing.assert_array_equal(fresh.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+
+    fresh.set_env(make_vec_env("CartPole-v1", n_envs=1, seed=0))
+    fresh.learn(64)
+    assert fresh._n_rounds == 1
+
+    # another number of envs goes through load(path, env), as in SB3; the round is still 64 transitions
+    on_four_envs = NFQ.load(path, env=make_vec_env("CartPole-v1", n_envs=4, seed=0))
+    fitting = record_fitting(on_four_envs)
+    on_four_envs.learn(64)
+    assert [len(batch) for batch in fitting.grad_inputs] == [64] * 3
+
+
+def test_load_from_a_file_object(trained: tuple[NFQ, Path]) -> None:
+    model, path = trained
+    loaded = NFQ.load(io.BytesIO(path.read_bytes()))
+    obs = np.zeros((1, 4), dtype=np.float32)
+    th.testing.assert_close(loaded.q_net(th.as_tensor(obs)), model.q_net(th.as_tensor(obs)))
+
+
+def test_loading_something_that_is_not_an_nfq_checkpoint_fails_clearly(tmp_path: Path) -> None:
+    dqn_path = tmp_path / "dqn.zip"
+    DQN("MlpPolicy", "CartPole-v1").save(dqn_path)
+    with pytest.raises(ValueError, match=r"not an NFQ checkpoint.*DQNPolicy"):
+        NFQ.load(dqn_path)
+
+    text_file = tmp_path / "notes.zip"
+    text_file.write_text("not a zip")
+    with pytest.raises(ValueError, match="not an NFQ checkpoint"):
+        NFQ.load(text_file)
+
+    empty_zip = tmp_path / "empty.zip"
+    with zipfile.ZipFile(empty_zip, "w") as archive:
+        archive.writestr("readme.txt", "nothing")
+    with pytest.raises(ValueError, match="not an NFQ checkpoint"):
+        NFQ.load(empty_zip)
+
+    with pytest.raises(FileNotFoundError):
+        NFQ.load(tmp_path / "missing.zip")

@@ -1,0 +1,61 @@
+"""
+NFQ with the SB3 tooling you already use: EvalCallback (greedy evaluation, best model),
+CheckpointCallback (zip checkpoints) and TensorBoard logging, then resuming from a checkpoint.
+
+    python examples/callbacks_tensorboard.py [--total-timesteps 60000] [--log-dir logs/nfq_cartpole]
+    tensorboard --logdir logs/nfq_cartpole/tensorboard
+"""
+
+import argparse
+from pathlib import Path
+
+from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_nfq import NFQ
+
+
+def main(argv: list[str] | None = None) -> Path:
+    """
+    Train with evaluation, checkpoints and TensorBoard, then resume training from the last checkpoint.
+
+    :param argv: command-line arguments (default: ``sys.argv[1:]``)
+    :return: the log directory
+    """
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--total-timesteps", type=int, default=60_000)
+    parser.add_argument("--log-dir", type=Path, default=Path("logs/nfq_cartpole"))
+    args = parser.parse_args(argv)
+    log_dir: Path = args.log_dir
+
+    # Two envs: a round is still 1024 transitions in total (512 steps in each env).
+    env = make_vec_env("CartPole-v1", n_envs=2, seed=0)
+    model = NFQ("MlpPolicy", env, seed=0, tensorboard_log=str(log_dir / "tensorboard"))
+
+    round_steps = 1024 // env.num_envs  # callbacks count env.step() calls, each of n_envs transitions
+    callbacks = [
+        EvalCallback(
+            make_vec_env("CartPole-v1", n_envs=10, seed=1),
+            n_eval_episodes=20,
+            eval_freq=5 * round_steps,
+            best_model_save_path=str(log_dir / "best_model"),
+            log_path=str(log_dir / "eval"),
+            deterministic=True,
+        ),
+        CheckpointCallback(save_freq=10 * round_steps, save_path=str(log_dir / "checkpoints"), name_prefix="nfq"),
+    ]
+    model.learn(args.total_timesteps, callback=callbacks, progress_bar=True)
+
+    checkpoints = sorted((log_dir / "checkpoints").glob("nfq_*_steps.zip"), key=lambda p: int(p.stem.split("_")[1]))
+    print(f"Checkpoints: {[p.name for p in checkpoints]}")
+    if checkpoints:
+        # Resume from the last checkpoint: weights, optimizer state and step counter come back.
+        resumed = NFQ.load(checkpoints[-1], env=env)
+        resumed.learn(2048, reset_num_timesteps=False, tb_log_name="NFQ_resumed")
+        print(f"Resumed from {checkpoints[-1].name} and trained on to {resumed.num_timesteps} steps")
+    print(f"TensorBoard logs: tensorboard --logdir {log_dir / 'tensorboard'}")
+    return log_dir
+
+
+if __name__ == "__main__":
+    main()

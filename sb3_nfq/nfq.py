@@ -31,6 +31,18 @@ SelfNFQ = TypeVar("SelfNFQ", bound="NFQ")
 #: Regression losses NFQ can fit its Q-values with (the textbook uses MSE).
 LOSSES = {"mse": F.mse_loss, "huber": F.smooth_l1_loss}
 LossName = Literal["mse", "huber"]
+#: "fresh": the textbook's batch of one round, discarded after fitting; "growing": the 2005 paper's memory of
+#: every transition so far (up to ``buffer_size``, then the oldest go first).
+MEMORIES = ("fresh", "growing")
+MemoryName = Literal["fresh", "growing"]
+#: "recompute_every_step": the textbook's targets, recomputed before every gradient step;
+#: "fixed_per_iteration": classic fitted Q-iteration, targets computed once per iteration then regressed on.
+TARGET_MODES = ("recompute_every_step", "fixed_per_iteration")
+TargetModeName = Literal["recompute_every_step", "fixed_per_iteration"]
+#: Capacity of a growing memory when ``buffer_size`` is not given (SB3's replay buffer default).
+DEFAULT_GROWING_CAPACITY = 1_000_000
+#: Largest number of transitions whose targets are computed in one forward pass (bounds activation memory).
+TARGET_CHUNK = 65_536
 
 
 class NFQ(OffPolicyAlgorithm):
@@ -44,6 +56,18 @@ class NFQ(OffPolicyAlgorithm):
     and takes one gradient step on the loss between ``Q(s, a)`` and the targets over the *whole* round
     (every transition exactly once). Then the round's transitions are discarded. There is no target network.
     Episodes that truly terminate bootstrap on 0; time-limit truncations bootstrap on ``Q(s', .)``.
+
+    Beyond the textbook (its settings stay the defaults):
+
+    - ``memory="growing"`` is the 2005 paper's variant: every transition is kept (up to ``buffer_size``)
+      and every fitted iteration covers the *whole* memory: one full-batch step (``batch_size=None``),
+      or one shuffled epoch of mini-batches of ``batch_size`` when the memory is larger than that.
+    - ``target_mode="fixed_per_iteration"`` is classic fitted Q-iteration: each fitted iteration computes
+      the targets of the whole memory once, then regresses on those fixed targets for ``fit_epochs`` epochs.
+      The textbook's ``"recompute_every_step"`` recomputes them before every gradient step.
+    - ``th.optim.Rprop`` (the paper's optimiser) needs full-batch gradients: combining it with mini-batches
+      is refused.
+    - :meth:`fit_offline` fits on a fixed :class:`~sb3_nfq.offline.TransitionDataset` without an env.
 
     The book's names map onto SB3's as follows (the defaults are the book's CartPole settings):
 
@@ -76,11 +100,20 @@ class NFQ(OffPolicyAlgorithm):
         needs ``buffer_size``). ``(n, "step")`` is the same as ``n``.
     :param gradient_steps: Fitted iterations per round (the book's K): each recomputes the targets
         and takes one optimizer step on the whole round (or one epoch of mini-batches, see ``batch_size``).
-    :param batch_size: ``None`` (default, the textbook): each fitted iteration is one full-batch gradient step.
-        An integer splits each fitted iteration into one shuffled epoch of mini-batches of this size,
-        recomputing the targets of each mini-batch before its step.
-    :param buffer_size: Most transitions one round may hold. ``None`` (default): exactly one round of
-        ``train_freq`` transitions. Required when ``train_freq`` counts episodes.
+    :param batch_size: ``None`` (default, the textbook): each fitted iteration is one full-batch gradient step
+        per epoch. An integer splits each epoch into shuffled mini-batches of this size that cover every
+        transition once (with ``"recompute_every_step"``, each mini-batch's targets are recomputed before its step).
+    :param buffer_size: Most transitions the memory holds. ``None`` (default): exactly one round of
+        ``train_freq`` transitions for the fresh memory, 1,000,000 for the growing one.
+        Required when ``train_freq`` counts episodes with the fresh memory.
+    :param memory: ``"fresh"`` (textbook): fit on the round's transitions only, then discard them;
+        ``"growing"`` (2005 paper): keep every transition (the oldest are dropped past ``buffer_size``)
+        and fit on the whole memory every round.
+    :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
+        ``"fixed_per_iteration"`` (classic fitted Q-iteration): computed once per fitted iteration, then
+        ``fit_epochs`` epochs of regression on them.
+    :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration
+        (only with ``target_mode="fixed_per_iteration"``).
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from
@@ -120,6 +153,9 @@ class NFQ(OffPolicyAlgorithm):
         gradient_steps: int = 40,
         batch_size: int | None = None,
         buffer_size: int | None = None,
+        memory: MemoryName = "fresh",
+        target_mode: TargetModeName = "recompute_every_step",
+        fit_epochs: int = 1,
         gamma: float = 1.0,
         loss: LossName = "mse",
         exploration_fraction: float = 0.1,
@@ -140,6 +176,9 @@ class NFQ(OffPolicyAlgorithm):
             gradient_steps=gradient_steps,
             batch_size=batch_size,
             buffer_size=buffer_size,
+            memory=memory,
+            target_mode=target_mode,
+            fit_epochs=fit_epochs,
             gamma=gamma,
             loss=loss,
             exploration_fraction=exploration_fraction,
@@ -169,6 +208,9 @@ class NFQ(OffPolicyAlgorithm):
             support_multi_env=True,
         )
         self.loss = loss
+        self.memory = memory
+        self.target_mode = target_mode
+        self.fit_epochs = fit_epochs
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
         self.exploration_fraction = exploration_fraction
@@ -187,6 +229,7 @@ class NFQ(OffPolicyAlgorithm):
             self.replay_buffer = self._make_memory()
         super()._setup_model()
         self.q_net = self.policy.q_net
+        self._check_optimizer_gets_full_batches()
         self.exploration_schedule = LinearSchedule(
             self.exploration_initial_eps,
             self.exploration_final_eps,
@@ -204,7 +247,7 @@ class NFQ(OffPolicyAlgorithm):
 
     def _make_memory(self) -> ReplayBuffer:
         """
-        Create the transition memory that holds one round: SB3's replay buffer, read in order, never sampled.
+        Create the transition memory: SB3's replay buffer, read whole, never sampled with replacement.
         It keeps ``terminated`` and time-limit truncation apart (``handle_timeout_termination``).
 
         :return: An empty replay buffer for ``self.n_envs`` environments.
@@ -218,12 +261,12 @@ class NFQ(OffPolicyAlgorithm):
                     f"{asked} counts episodes, which needs a single environment; "
                     f"got n_envs={self.n_envs}. Count transitions instead, e.g. train_freq=1024."
                 )
-            if self.buffer_size is None:
+            if self.buffer_size is None and self.memory == "fresh":
                 raise ValueError(
                     f"{asked} counts episodes, so NFQ cannot know how many transitions a round "
                     "holds: pass buffer_size, the most transitions one round may hold (e.g. buffer_size=100_000)."
                 )
-            capacity = self.buffer_size
+            capacity = self.buffer_size or DEFAULT_GROWING_CAPACITY
         else:
             round_transitions = round_length.frequency * self.n_envs
             if self.buffer_size is not None and self.buffer_size < round_transitions:
@@ -231,7 +274,7 @@ class NFQ(OffPolicyAlgorithm):
                     f"buffer_size={self.buffer_size} is smaller than one round of {round_transitions} transitions "
                     f"({asked} with n_envs={self.n_envs}); use buffer_size=None or a larger value."
                 )
-            capacity = self.buffer_size or round_transitions
+            capacity = self.buffer_size or (round_transitions if self.memory == "fresh" else DEFAULT_GROWING_CAPACITY)
         buffer_class: type[ReplayBuffer] = (
             DictReplayBuffer if isinstance(self.observation_space, spaces.Dict) else ReplayBuffer
         )
@@ -288,10 +331,11 @@ class NFQ(OffPolicyAlgorithm):
                         f"Round {self._n_rounds + 1} collected {rollout.episode_timesteps} transitions, more than "
                         f"buffer_size={self.buffer_size} holds; raise buffer_size."
                     )
-                # 2. Fit: gradient_steps fitted iterations on the whole round.
+                # 2. Fit: gradient_steps fitted iterations on the whole memory.
                 self.train(gradient_steps=self.gradient_steps, batch_size=self.batch_size)
-            # 3. Discard the round's transitions (a round cut short by a callback is discarded too).
-            self.replay_buffer.reset()
+            # 3. The textbook discards the round (also one cut short by a callback); a growing memory keeps it.
+            if self.memory == "fresh":
+                self.replay_buffer.reset()
             if not rollout.continue_training:
                 break
 
@@ -300,50 +344,85 @@ class NFQ(OffPolicyAlgorithm):
 
     def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
         """
-        Run ``gradient_steps`` fitted iterations on all transitions of the round.
+        Run ``gradient_steps`` fitted iterations, each covering every transition in the memory.
 
         :param gradient_steps: Number of fitted iterations (the book's K)
-        :param batch_size: ``None``: one full-batch step per iteration; else one epoch of mini-batches of this size
+        :param batch_size: ``None``: one full-batch step per epoch; else shuffled mini-batches of this size
         """
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         batch = self._stored_transitions()
-        loss_fn = LOSSES[self.loss]
+        n_transitions = len(batch.rewards)
         self._n_rounds += 1
 
         losses = []
         for iteration in range(gradient_steps):
-            for data in _epoch(batch, batch_size):
-                # The TD target is a constant for the gradient step: computed with no graph.
-                with th.no_grad():
-                    next_q_values = self.q_net(data.next_observations).max(dim=1).values.reshape(-1, 1)
-                    target_q_values = data.rewards + (1 - data.dones) * self.gamma * next_q_values
-                current_q_values = th.gather(self.q_net(data.observations), dim=1, index=data.actions.long())
-                loss = loss_fn(current_q_values, target_q_values)
+            fixed_targets = self._td_targets(batch) if self.target_mode == "fixed_per_iteration" else None
+            for _ in range(self.fit_epochs):
+                for indices in _minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
+                    data = _take(batch, indices)
+                    # The TD target is a constant for the gradient step: computed without a graph.
+                    targets = self._td_targets(data) if fixed_targets is None else fixed_targets[indices]
+                    q_values = th.gather(self.q_net(data.observations), dim=1, index=data.actions.long())
+                    loss = LOSSES[self.loss](q_values, targets)
 
-                loss_value = loss.item()
-                if not math.isfinite(loss_value):
-                    raise FloatingPointError(
-                        f"NFQ loss became {loss_value} in round {self._n_rounds} "
-                        f"(fitted iteration {iteration + 1}/{gradient_steps}, after {self.num_timesteps} env steps); "
-                        "training stopped before that step was applied. Check the rewards and observations for "
-                        "NaN/inf, or lower learning_rate, use loss='huber' or set max_grad_norm."
-                    )
-                losses.append(loss_value)
+                    loss_value = loss.item()
+                    if not math.isfinite(loss_value):
+                        raise FloatingPointError(
+                            f"NFQ loss became {loss_value} in round {self._n_rounds} (fitted iteration "
+                            f"{iteration + 1}/{gradient_steps}, after {self.num_timesteps} env steps); training "
+                            "stopped before that step was applied. Check the rewards and observations for NaN/inf, "
+                            "or lower learning_rate, use loss='huber' or set max_grad_norm."
+                        )
+                    losses.append(loss_value)
 
-                self.policy.optimizer.zero_grad()
-                loss.backward()
-                if self.max_grad_norm is not None:
-                    th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-                self.policy.optimizer.step()
-                self._n_updates += 1
+                    self.policy.optimizer.zero_grad()
+                    loss.backward()
+                    if self.max_grad_norm is not None:
+                        th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+                    self.policy.optimizer.step()
+                    self._n_updates += 1
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/n_rounds", self._n_rounds, exclude="tensorboard")
-        self.logger.record("train/batch_transitions", len(batch.rewards))
+        self.logger.record("train/batch_transitions", n_transitions)
         self.logger.record("train/loss", float(np.mean(losses)))
-        self.logger.record("train/q_mean", current_q_values.mean().item())
-        self.logger.record("train/td_target_mean", target_q_values.mean().item())
+        self.logger.record("train/q_mean", q_values.mean().item())
+        self.logger.record("train/td_target_mean", targets.mean().item())
+
+    def _td_targets(self, data: ReplayBufferSamples) -> th.Tensor:
+        """
+        :param data: transitions
+        :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the current network, as a constant
+            (no graph), shape ``(n, 1)``; computed in chunks so a large memory fits in memory.
+        """
+        with th.no_grad():
+            n_transitions = len(data.rewards)
+            if n_transitions <= TARGET_CHUNK:
+                next_q_values = self.q_net(data.next_observations).max(dim=1).values
+            else:
+                chunks = th.arange(n_transitions, device=data.rewards.device).split(TARGET_CHUNK)
+                next_q_values = th.cat(
+                    [self.q_net(_take_obs(data.next_observations, chunk)).max(dim=1).values for chunk in chunks]
+                )
+            next_q_values = next_q_values.reshape(-1, 1)
+            return data.rewards + (1 - data.dones) * self.gamma * next_q_values
+
+    def _check_optimizer_gets_full_batches(self) -> None:
+        """Rprop adapts per-weight step sizes from the signs of successive gradients: they must be full-batch."""
+        if not isinstance(self.policy.optimizer, th.optim.Rprop) or self.batch_size is None:
+            return
+        round_transitions = self._round_length().frequency * self.n_envs
+        if (
+            self.memory == "growing"
+            or self._round_length().unit == TrainFrequencyUnit.EPISODE
+            or (self.batch_size < round_transitions)
+        ):
+            raise ValueError(
+                f"Rprop needs full-batch gradients, but batch_size={self.batch_size} would give it mini-batches "
+                f"(memory={self.memory!r}). Use batch_size=None with Rprop, or another optimizer_class "
+                "(RMSprop, Adam) for mini-batches."
+            )
 
     def _stored_transitions(self) -> ReplayBufferSamples:
         """
@@ -452,26 +531,43 @@ class NFQ(OffPolicyAlgorithm):
         return ["policy", "policy.optimizer"], []
 
 
-def _epoch(batch: ReplayBufferSamples, batch_size: int | None) -> Iterator[ReplayBufferSamples]:
+def _minibatch_indices(n_transitions: int, batch_size: int | None, device: th.device) -> Iterator[th.Tensor | None]:
     """
-    :param batch: All transitions of the round
-    :param batch_size: ``None`` for the whole batch at once, else the mini-batch size
-    :return: The batch itself, or one shuffled epoch of mini-batches covering every transition once.
+    :param n_transitions: number of transitions in the memory
+    :param batch_size: ``None`` for the whole memory at once, else the mini-batch size
+    :param device: device of the index tensors
+    :return: ``None`` (the whole memory) once, or the indices of one shuffled epoch of mini-batches
+        that covers every transition exactly once.
     """
-    n_transitions = len(batch.rewards)
     if batch_size is None or batch_size >= n_transitions:
-        yield batch
+        yield None
         return
-    for indices in th.randperm(n_transitions, device=batch.rewards.device).split(batch_size):
-        yield ReplayBufferSamples(*(_take(field, indices) for field in batch))
+    yield from th.randperm(n_transitions, device=device).split(batch_size)
 
 
-def _take(field: Any, indices: th.Tensor) -> Any:
-    if field is None:  # ReplayBufferSamples.discounts, unused by NFQ
-        return None
-    if isinstance(field, dict):
-        return {key: value[indices] for key, value in field.items()}
-    return field[indices]
+def _take_obs(observations: Any, indices: th.Tensor | None) -> Any:
+    if indices is None:
+        return observations
+    if isinstance(observations, dict):
+        return {key: value[indices] for key, value in observations.items()}
+    return observations[indices]
+
+
+def _take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferSamples:
+    """
+    :param batch: transitions
+    :param indices: which ones (``None``: all)
+    :return: the selected transitions (``discounts``, unused by NFQ, stays ``None``)
+    """
+    if indices is None:
+        return batch
+    return ReplayBufferSamples(
+        observations=_take_obs(batch.observations, indices),
+        actions=batch.actions[indices],
+        next_observations=_take_obs(batch.next_observations, indices),
+        dones=batch.dones[indices],
+        rewards=batch.rewards[indices],
+    )
 
 
 def _check_action_space(action_space: spaces.Space | None) -> None:
@@ -494,6 +590,9 @@ def _check_hyperparameters(
     gradient_steps: int,
     batch_size: int | None,
     buffer_size: int | None,
+    memory: str,
+    target_mode: str,
+    fit_epochs: int,
     gamma: float,
     loss: str,
     exploration_fraction: float,
@@ -509,8 +608,13 @@ def _check_hyperparameters(
         raise ValueError(f"train_freq (transitions per round) must be a positive integer, got {frequency!r}")
     if unit not in ("step", "episode"):
         raise ValueError(f"the unit of train_freq must be 'step' or 'episode', got {unit!r}")
-    for name, value in (("gradient_steps", gradient_steps), ("batch_size", batch_size), ("buffer_size", buffer_size)):
-        if value is None and name != "gradient_steps":
+    for name, value in (
+        ("gradient_steps", gradient_steps),
+        ("fit_epochs", fit_epochs),
+        ("batch_size", batch_size),
+        ("buffer_size", buffer_size),
+    ):
+        if value is None and name in ("batch_size", "buffer_size"):
             continue
         if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
@@ -518,6 +622,15 @@ def _check_hyperparameters(
         raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {sorted(LOSSES)}, got {loss!r}")
+    if memory not in MEMORIES:
+        raise ValueError(f"memory must be one of {list(MEMORIES)}, got {memory!r}")
+    if target_mode not in TARGET_MODES:
+        raise ValueError(f"target_mode must be one of {list(TARGET_MODES)}, got {target_mode!r}")
+    if fit_epochs != 1 and target_mode != "fixed_per_iteration":
+        raise ValueError(
+            f"fit_epochs={fit_epochs} needs target_mode='fixed_per_iteration': with 'recompute_every_step' "
+            "every step already uses fresh targets, so raise gradient_steps instead"
+        )
     if not 0.0 < exploration_fraction <= 1.0:
         raise ValueError(f"exploration_fraction must be in (0, 1], got {exploration_fraction!r}")
     for name, eps in (

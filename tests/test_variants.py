@@ -1,0 +1,212 @@
+"""Beyond the book: the growing memory, fixed targets per iteration (classic FQI) and Rprop."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.logger import Logger
+
+from sb3_nfq import NFQ
+from tests.conftest import TransitionRecorder, record_fitting
+
+
+def test_growing_memory_refits_on_every_transition_so_far() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, seed=0)
+    fitting = record_fitting(model)
+    recorder = TransitionRecorder()
+    model.learn(192, callback=recorder)
+
+    assert [len(x) for x in fitting.grad_inputs] == [64, 64, 128, 128, 192, 192]
+    all_obs, _, _ = recorder.transitions(0, 192)
+    np.testing.assert_array_equal(fitting.grad_inputs[-1].numpy(), all_obs)
+    assert model.replay_buffer.size() == 192  # kept, not discarded
+
+
+def test_textbook_default_memory_is_fresh() -> None:
+    assert NFQ("MlpPolicy", "CartPole-v1").memory == "fresh"
+
+
+def test_growing_memory_drops_the_oldest_transitions_past_buffer_size() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", buffer_size=128, train_freq=64, gradient_steps=1)
+    fitting = record_fitting(model)
+    recorder = TransitionRecorder()
+    model.learn(256, callback=recorder)
+
+    assert [len(x) for x in fitting.grad_inputs] == [64, 128, 128, 128]
+    newest, _, _ = recorder.transitions(128, 256)
+    fitted = fitting.grad_inputs[-1].numpy()
+    assert sorted(map(tuple, fitted)) == sorted(map(tuple, newest))
+
+
+def test_growing_memory_with_minibatches_covers_the_whole_memory_each_iteration() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=96, gradient_steps=2, batch_size=50, seed=0)
+    fitting = record_fitting(model)
+    recorder = TransitionRecorder()
+    model.learn(192, callback=recorder)
+
+    # round 1: 96 transitions = 2 mini-batches per iteration; round 2: 192 = 4 mini-batches per iteration
+    sizes = [len(x) for x in fitting.grad_inputs]
+    assert sizes == [50, 46] * 2 + [50, 50, 50, 42] * 2
+    all_obs, _, _ = recorder.transitions(0, 192)
+    last_iteration = th.cat(fitting.grad_inputs[-4:]).numpy()
+    np.testing.assert_array_equal(np.sort(last_iteration, axis=0), np.sort(all_obs, axis=0))
+
+
+def _sgd_model(target_mode: str, fit_epochs: int) -> NFQ:
+    model = NFQ(
+        "MlpPolicy",
+        "CartPole-v1",
+        train_freq=4,
+        gamma=0.9,
+        target_mode=target_mode,  # type: ignore[arg-type]
+        fit_epochs=fit_epochs,
+        seed=3,
+        learning_rate=0.5,
+        policy_kwargs={"optimizer_class": th.optim.SGD, "net_arch": [8]},
+    )
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    rng = np.random.default_rng(1)
+    for _ in range(4):
+        obs, next_obs = rng.normal(size=(2, 1, 4)).astype(np.float32)
+        model.replay_buffer.add(obs, next_obs, np.array([[rng.integers(2)]]), np.array([1.0]), np.array([0.0]), [{}])
+    return model
+
+
+def _by_hand(model: NFQ, n_steps: int, recompute: bool) -> list[th.Tensor]:
+    """SGD steps on a copy of the network, with targets recomputed each step or fixed at the start."""
+    data = model._stored_transitions()
+    q_net = model.policy.make_q_net()
+    q_net.load_state_dict(model.q_net.state_dict())
+    optimizer = th.optim.SGD(q_net.parameters(), lr=0.5)
+
+    def targets() -> th.Tensor:
+        with th.no_grad():
+            return data.rewards + model.gamma * q_net(data.next_observations).max(dim=1).values.reshape(-1, 1)
+
+    fixed = targets()
+    for _ in range(n_steps):
+        target = targets() if recompute else fixed
+        loss = th.nn.functional.mse_loss(th.gather(q_net(data.observations), 1, data.actions.long()), target)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return [p.detach() for p in q_net.parameters()]
+
+
+def test_fixed_targets_are_computed_once_per_iteration_and_regressed_on_for_fit_epochs() -> None:
+    model = _sgd_model("fixed_per_iteration", fit_epochs=3)
+    fixed = _by_hand(model, 3, recompute=False)
+    recomputed = _by_hand(model, 3, recompute=True)
+    assert any(not th.allclose(a, b) for a, b in zip(fixed, recomputed, strict=True))
+
+    fitting = record_fitting(model)
+    model.train(gradient_steps=1)
+    assert fitting.optimizer_steps == 3
+    assert fitting.no_grad_batch_sizes == [4]  # one target pass over the memory for the whole iteration
+    for got, expected in zip(model.q_net.parameters(), fixed, strict=True):
+        th.testing.assert_close(got.detach(), expected)
+
+
+def test_textbook_targets_are_recomputed_before_every_step() -> None:
+    model = _sgd_model("recompute_every_step", fit_epochs=1)
+    recomputed = _by_hand(model, 3, recompute=True)
+    fitting = record_fitting(model)
+    model.train(gradient_steps=3)
+    assert fitting.no_grad_batch_sizes == [4, 4, 4]
+    for got, expected in zip(model.q_net.parameters(), recomputed, strict=True):
+        th.testing.assert_close(got.detach(), expected)
+
+
+def test_fixed_targets_with_minibatches_use_each_transitions_own_target() -> None:
+    model = NFQ(
+        "MlpPolicy",
+        "CartPole-v1",
+        memory="growing",
+        target_mode="fixed_per_iteration",
+        fit_epochs=2,
+        batch_size=32,
+        train_freq=64,
+        gradient_steps=3,
+        seed=0,
+    )
+    fitting = record_fitting(model)
+    model.learn(128)
+    # per iteration: one target pass over the memory, then 2 epochs of 64/32 or 128/32 mini-batches
+    assert fitting.no_grad_batch_sizes.count(64) == 3 and fitting.no_grad_batch_sizes.count(128) == 3
+    assert fitting.optimizer_steps == 3 * 2 * 2 + 3 * 2 * 4
+
+
+def test_rprop_trains_full_batch_in_both_memories() -> None:
+    for memory in ("fresh", "growing"):
+        model = NFQ(
+            "MlpPolicy",
+            "CartPole-v1",
+            memory=memory,
+            target_mode="fixed_per_iteration",
+            fit_epochs=5,
+            train_freq=64,
+            gradient_steps=2,
+            learning_rate=0.01,
+            policy_kwargs={"optimizer_class": th.optim.Rprop},
+            seed=0,
+        )
+        fitting = record_fitting(model)
+        model.learn(128)
+        assert fitting.optimizer_steps == 2 * 2 * 5
+        assert {len(x) for x in fitting.grad_inputs} == ({64} if memory == "fresh" else {64, 128})
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"memory": "growing", "batch_size": 256},
+        {"memory": "fresh", "batch_size": 256},
+        {"memory": "fresh", "train_freq": (3, "episode"), "buffer_size": 5000, "batch_size": 256},
+    ],
+)
+def test_rprop_with_minibatches_is_refused(kwargs: dict) -> None:
+    with pytest.raises(ValueError, match="Rprop needs full-batch gradients, but batch_size=256"):
+        NFQ("MlpPolicy", "CartPole-v1", policy_kwargs={"optimizer_class": th.optim.Rprop}, **kwargs)
+
+
+def test_rprop_with_a_batch_size_that_covers_the_whole_fresh_round_is_full_batch() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", batch_size=1024, policy_kwargs={"optimizer_class": th.optim.Rprop})
+    assert model.batch_size == 1024
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"memory": "all"}, r"memory must be one of \['fresh', 'growing'\], got 'all'"),
+        ({"target_mode": "fixed"}, r"target_mode must be one of \['recompute_every_step', 'fixed_per_iteration'\]"),
+        ({"fit_epochs": 0}, "fit_epochs must be a positive integer"),
+        ({"fit_epochs": 3}, "fit_epochs=3 needs target_mode='fixed_per_iteration'"),
+        ({"memory": "growing", "buffer_size": 100}, "buffer_size=100 is smaller than one round of 1024"),
+    ],
+)
+def test_bad_variant_parameters_are_rejected(kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        NFQ("MlpPolicy", "CartPole-v1", **kwargs)
+
+
+def test_variant_settings_and_the_growing_memory_survive_save_and_load(tmp_path: Path) -> None:
+    model = NFQ(
+        "MlpPolicy",
+        "CartPole-v1",
+        memory="growing",
+        target_mode="fixed_per_iteration",
+        fit_epochs=2,
+        train_freq=64,
+        gradient_steps=1,
+    )
+    model.learn(128)
+    model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "memory.pkl")
+
+    loaded = NFQ.load(tmp_path / "model.zip", env=model.get_env())
+    assert (loaded.memory, loaded.target_mode, loaded.fit_epochs) == ("growing", "fixed_per_iteration", 2)
+    loaded.load_replay_buffer(tmp_path / "memory.pkl")
+    fitting = record_fitting(loaded)
+    loaded.learn(64, reset_num_timesteps=False)
+    assert {len(x) for x in fitting.grad_inputs} == {192}

@@ -21,9 +21,10 @@ from stable_baselines3.common.type_aliases import (
     TrainFreq,
     TrainFrequencyUnit,
 )
-from stable_baselines3.common.utils import LinearSchedule
+from stable_baselines3.common.utils import LinearSchedule, configure_logger
 from torch.nn import functional as F
 
+from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
 
 SelfNFQ = TypeVar("SelfNFQ", bound="NFQ")
@@ -92,7 +93,7 @@ class NFQ(OffPolicyAlgorithm):
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, or a policy class)
     :param env: The environment to learn from (if registered in Gymnasium, can be str).
-        Its action space must be ``Discrete``.
+        Its action space must be ``Discrete``. To fit a dataset without an env, use :meth:`for_dataset`.
     :param learning_rate: The learning rate (the textbook's 5e-4), it can be a function
         of the current progress remaining (from 1 to 0). For ``th.optim.Rprop`` it is the initial step size.
     :param train_freq: Transitions collected per round (the book's E), counted over all envs.
@@ -147,7 +148,7 @@ class NFQ(OffPolicyAlgorithm):
     def __init__(
         self,
         policy: str | type[NFQPolicy],
-        env: GymEnv | str,
+        env: GymEnv | str | None,
         learning_rate: float | Schedule = 5e-4,
         train_freq: int | tuple[int, str] = 1024,
         gradient_steps: int = 40,
@@ -188,7 +189,7 @@ class NFQ(OffPolicyAlgorithm):
         )
         super().__init__(
             policy,
-            env,
+            env,  # type: ignore[arg-type]  # None: spaces come from load() or for_dataset()
             learning_rate,
             buffer_size=buffer_size,  # type: ignore[arg-type]  # None: one round, resolved in _make_memory
             learning_starts=0,
@@ -362,7 +363,10 @@ class NFQ(OffPolicyAlgorithm):
                 for indices in _minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
                     data = _take(batch, indices)
                     # The TD target is a constant for the gradient step: computed without a graph.
-                    targets = self._td_targets(data) if fixed_targets is None else fixed_targets[indices]
+                    if fixed_targets is None:
+                        targets = self._td_targets(data)
+                    else:
+                        targets = fixed_targets if indices is None else fixed_targets[indices]
                     q_values = th.gather(self.q_net(data.observations), dim=1, index=data.actions.long())
                     loss = LOSSES[self.loss](q_values, targets)
 
@@ -423,6 +427,60 @@ class NFQ(OffPolicyAlgorithm):
                 f"(memory={self.memory!r}). Use batch_size=None with Rprop, or another optimizer_class "
                 "(RMSprop, Adam) for mini-batches."
             )
+
+    @classmethod
+    def for_dataset(
+        cls: type[SelfNFQ], policy: str | type[NFQPolicy], dataset: TransitionDataset, **kwargs: Any
+    ) -> SelfNFQ:
+        """
+        Create an NFQ model for a dataset's spaces, with no environment (for :meth:`fit_offline`).
+        Give it an env later with ``set_env`` (one env) to go on learning online.
+
+        :param policy: The policy model to use (``"MlpPolicy"`` or a policy class)
+        :param dataset: the dataset whose observation and action spaces the model takes
+        :param kwargs: NFQ's other parameters (``gamma``, ``target_mode``, ``policy_kwargs``, ...)
+        :return: the new model
+        """
+        model = cls(policy, env=None, _init_setup_model=False, **kwargs)
+        model.observation_space = dataset.observation_space
+        model.action_space = dataset.action_space
+        model.n_envs = 1
+        model._setup_model()
+        return model
+
+    def fit_offline(self: SelfNFQ, dataset: TransitionDataset, iterations: int | None = None) -> SelfNFQ:
+        """
+        Fit on a fixed dataset, without touching an environment: ``iterations`` fitted iterations
+        (default ``gradient_steps``), each covering every transition of the dataset as configured
+        (``batch_size``, ``target_mode``, ``fit_epochs``). The online memory is left as it was, so the model
+        can go on with :meth:`learn`. Logs ``train/*`` once at the end.
+
+        :param dataset: the transitions to fit on; their spaces must match the model's
+        :param iterations: number of fitted iterations (default: ``self.gradient_steps``)
+        :return: the fitted model
+        """
+        dataset.check_spaces(self.observation_space, self.action_space)
+        iterations = self.gradient_steps if iterations is None else iterations
+        if not isinstance(iterations, int) or iterations <= 0:
+            raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
+        if (
+            isinstance(self.policy.optimizer, th.optim.Rprop)
+            and self.batch_size is not None
+            and self.batch_size < len(dataset)
+        ):
+            raise ValueError(
+                f"Rprop needs full-batch gradients, but batch_size={self.batch_size} would split the dataset's "
+                f"{len(dataset)} transitions into mini-batches. Use batch_size=None with Rprop."
+            )
+        if not hasattr(self, "_logger"):
+            self.set_logger(configure_logger(self.verbose, self.tensorboard_log, "NFQ_offline"))
+        online_memory, self.replay_buffer = self.replay_buffer, dataset.to_replay_buffer(self.device)
+        try:
+            self.train(gradient_steps=iterations, batch_size=self.batch_size)
+        finally:
+            self.replay_buffer = online_memory
+        self.logger.dump(step=self.num_timesteps)
+        return self
 
     def _stored_transitions(self) -> ReplayBufferSamples:
         """

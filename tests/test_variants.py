@@ -1,5 +1,6 @@
 """Beyond the book: the growing memory, fixed targets per iteration (classic FQI) and Rprop."""
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -101,7 +102,9 @@ def test_fixed_targets_are_computed_once_per_iteration_and_regressed_on_for_fit_
     assert any(not th.allclose(a, b) for a, b in zip(fixed, recomputed, strict=True))
 
     fitting = record_fitting(model)
-    model.train(gradient_steps=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # e.g. torch's warning on mismatched target and prediction shapes
+        model.train(gradient_steps=1)
     assert fitting.optimizer_steps == 3
     assert fitting.no_grad_batch_sizes == [4]  # one target pass over the memory for the whole iteration
     for got, expected in zip(model.q_net.parameters(), fixed, strict=True):

@@ -8,6 +8,7 @@ import argparse
 
 import gymnasium as gym
 from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.monitor import Monitor
 
 from sb3_nfq import NFQ
 
@@ -28,7 +29,7 @@ def main(argv: list[str] | None = None) -> float:
     model = NFQ("MlpPolicy", "CartPole-v1", seed=0, verbose=0)
     model.learn(total_timesteps=args.total_timesteps, progress_bar=True)
 
-    env = gym.make("CartPole-v1")
+    env = Monitor(gym.make("CartPole-v1"))
     mean_return, std_return = evaluate_policy(model, env, n_eval_episodes=20, deterministic=True)
     assert isinstance(mean_return, float)
     print(f"Greedy return over 20 episodes after {model.num_timesteps} steps: {mean_return:.1f} +/- {std_return:.1f}")

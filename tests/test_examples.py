@@ -40,3 +40,23 @@ def test_main_job_trains_evaluates_saves_and_reloads(tmp_path: Path, capsys: pyt
     assert "NOT solved" in printed and "Final evaluation on 100 new greedy episodes" in printed
     assert "Loaded agent, one greedy episode" in printed
     assert NFQ.load(output).num_timesteps == 2048
+
+
+def test_custom_env_example_checks_its_env_and_trains_with_multi_input_policy() -> None:
+    success_rate = _main("custom_env_gridworld.py")(["--total-timesteps", "2048"])
+    assert 0.0 <= success_rate <= 1.0
+
+
+def test_plot_learning_curve_example_writes_a_png(tmp_path: Path) -> None:
+    png = _main("plot_learning_curve.py")(["--total-timesteps", "3072", "--log-dir", str(tmp_path)])
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "evaluations.npz").is_file()
+
+
+def test_offline_minari_example_records_a_local_dataset_and_fits_it(tmp_path: Path) -> None:
+    pytest.importorskip("minari")
+    mean_length = _main("offline_minari.py")(
+        ["--episodes", "5", "--iterations", "2", "--minari-dir", str(tmp_path / "minari")]
+    )
+    assert mean_length >= 1
+    assert any((tmp_path / "minari").rglob("*.hdf5"))

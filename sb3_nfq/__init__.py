@@ -1,9 +1,18 @@
 """sb3-nfq: Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 algorithm."""
 
-from sb3_nfq.nfq import NFQ
+from sb3_nfq.nfq import NFQ, NFQDivergenceError
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy
 
 __version__ = "0.1.0"
 
-__all__ = ["NFQ", "CnnPolicy", "MlpPolicy", "MultiInputPolicy", "NFQPolicy", "TransitionDataset", "__version__"]
+__all__ = [
+    "NFQ",
+    "CnnPolicy",
+    "MlpPolicy",
+    "MultiInputPolicy",
+    "NFQDivergenceError",
+    "NFQPolicy",
+    "TransitionDataset",
+    "__version__",
+]

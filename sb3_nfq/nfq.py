@@ -40,6 +40,15 @@ MemoryName = Literal["fresh", "growing"]
 #: "fixed_per_iteration": classic fitted Q-iteration, targets computed once per iteration then regressed on.
 TARGET_MODES = ("recompute_every_step", "fixed_per_iteration")
 TargetModeName = Literal["recompute_every_step", "fixed_per_iteration"]
+
+
+class NFQDivergenceError(FloatingPointError, ValueError):
+    """
+    The fitting loss became NaN or infinite. A ``FloatingPointError``, and also a ``ValueError`` so that
+    RL Zoo / Optuna tuning prunes the diverging trial instead of stopping the whole study.
+    """
+
+
 #: Capacity of a growing memory when ``buffer_size`` is not given (SB3's replay buffer default).
 DEFAULT_GROWING_CAPACITY = 1_000_000
 #: Largest number of transitions whose targets are computed in one forward pass (bounds activation memory).
@@ -372,7 +381,7 @@ class NFQ(OffPolicyAlgorithm):
 
                     loss_value = loss.item()
                     if not math.isfinite(loss_value):
-                        raise FloatingPointError(
+                        raise NFQDivergenceError(
                             f"NFQ loss became {loss_value} in round {self._n_rounds} (fitted iteration "
                             f"{iteration + 1}/{gradient_steps}, after {self.num_timesteps} env steps); training "
                             "stopped before that step was applied. Check the rewards and observations for NaN/inf, "

@@ -1,0 +1,389 @@
+"""
+The RL Zoo bridge (``python -m sb3_nfq.zoo``) with the real rl_zoo3, Optuna and files, on tiny budgets.
+
+The zoo's commands run in subprocesses: importing rl_zoo3 patches gymnasium's ``TimeLimit`` for the whole
+process, which must not leak into the other tests. This module imports rl_zoo3 nowhere.
+"""
+
+import os
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import optuna
+import pytest
+import torch as th
+import yaml
+from optuna.storages.journal import JournalFileBackend
+from optuna.trial import TrialState
+from stable_baselines3.common.env_util import make_atari_env
+from stable_baselines3.common.type_aliases import TrainFreq
+from stable_baselines3.common.vec_env import VecFrameStack
+from torch import nn
+
+from sb3_nfq import NFQ
+from sb3_nfq.zoo import (
+    ALGO_NAME,
+    CATEGORICAL_SPACE,
+    DEFAULT_CONF_FILE,
+    NET_ARCHS,
+    OPTIMIZERS,
+    convert_nfq_params,
+    main,
+    sample_nfq_params,
+    zoo_arguments,
+)
+
+ENV_ID = "CartPole-v1"
+#: One torch/BLAS thread per zoo process (the machine is shared).
+SINGLE_THREAD_ENV = {
+    **os.environ,
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+}
+TIMEOUT_S = 300
+#: Tiny tuning runs: trials of 1024 steps, evaluated once on 2 episodes, no plots.
+TINY_OPTIMIZE_ARGS = ["-optimize", "-n", "1024", "--n-evaluations", "1", "--eval-episodes", "2", "--no-optim-plots"]
+
+
+def _zoo(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """Run ``python -m sb3_nfq.zoo ARGS`` to completion with one thread and return its outcome."""
+    return subprocess.run(
+        [sys.executable, "-m", "sb3_nfq.zoo", *args, "--num-threads", "1"],
+        cwd=cwd,
+        env=SINGLE_THREAD_ENV,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+
+
+def _start_zoo(*args: str, cwd: Path, output: Path) -> subprocess.Popen[bytes]:
+    """Start ``python -m sb3_nfq.zoo ARGS`` with one thread, its stdout and stderr going to ``output``."""
+    with open(output, "wb") as file:
+        return subprocess.Popen(
+            [sys.executable, "-m", "sb3_nfq.zoo", *args, "--num-threads", "1"],
+            cwd=cwd,
+            env=SINGLE_THREAD_ENV,
+            stdout=file,
+            stderr=subprocess.STDOUT,
+        )
+
+
+def _check(result: subprocess.CompletedProcess[str]) -> str:
+    """:return: the command's stdout, once it is known to have succeeded"""
+    assert result.returncode == 0, f"exit status {result.returncode}\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}"
+    return result.stdout
+
+
+def _read_yaml(path: Path) -> Any:
+    with open(path) as file:
+        return yaml.load(file, Loader=yaml.UnsafeLoader)  # the zoo's files hold Python objects (OrderedDict, classes)
+
+
+# --- the command line the zoo gets ---
+
+
+@pytest.mark.parametrize(
+    ("command", "args", "expected"),
+    [
+        ("train", ["--env", ENV_ID], ["--algo", "nfq", "--conf-file", str(DEFAULT_CONF_FILE), "--env", ENV_ID]),
+        ("train", ["--algo", "nfq"], ["--conf-file", str(DEFAULT_CONF_FILE), "--algo", "nfq"]),
+        ("train", ["--algo=nfq", "-conf", "my.yml"], ["--algo=nfq", "-conf", "my.yml"]),
+        ("train", ["--conf-file=my.yml"], ["--algo", "nfq", "--conf-file=my.yml"]),
+        ("train", ["--conf", "my.yml"], ["--algo", "nfq", "--conf", "my.yml"]),  # argparse abbreviation
+        ("train", ["--algo", "dqn", "--env", ENV_ID], ["--algo", "dqn", "--env", ENV_ID]),  # other algos: untouched
+        (
+            "train",
+            ["-params", "n_timesteps:2048", "train_freq:64"],
+            ["--algo", "nfq", "--conf-file", str(DEFAULT_CONF_FILE), "-params", "n_timesteps:2048", "train_freq:64"],
+        ),
+        ("enjoy", ["--env", ENV_ID], ["--algo", "nfq", "--folder", "logs", "--env", ENV_ID]),
+        ("enjoy", ["-f", "runs", "--no-render"], ["--algo", "nfq", "-f", "runs", "--no-render"]),
+        ("enjoy", ["--algo", "ppo"], ["--algo", "ppo"]),  # the zoo's own default folder (downloaded agents)
+        ("train", ["--algo"], ["--algo"]),  # malformed: the zoo's parser reports it
+    ],
+)
+def test_zoo_gets_the_arguments_untouched_after_the_nfq_defaults(
+    command: str, args: list[str], expected: list[str]
+) -> None:
+    assert zoo_arguments(command, args) == expected
+
+
+def test_packaged_hyperparameter_file_exists() -> None:
+    assert DEFAULT_CONF_FILE.is_file()
+    assert DEFAULT_CONF_FILE.parent.parent.name == "sb3_nfq"
+
+
+def test_help_and_unknown_command(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--help"]) == 0
+    assert "python -m sb3_nfq.zoo {train,enjoy}" in capsys.readouterr().out
+    assert main(["fly"]) == 2
+    assert "unknown command 'fly'" in capsys.readouterr().err
+
+
+# --- the hyperparameter file ---
+
+
+def _hyperparameter_file() -> dict[str, dict[str, Any]]:
+    with open(DEFAULT_CONF_FILE) as file:
+        entries = yaml.safe_load(file)  # the zoo reads it with safe_load too
+    assert isinstance(entries, dict)
+    return entries
+
+
+def test_cartpole_entry_holds_the_textbook_settings() -> None:
+    cartpole = _hyperparameter_file()[ENV_ID]
+    assert cartpole == {
+        "n_timesteps": 3e5,
+        "policy": "MlpPolicy",
+        "learning_rate": 5e-4,
+        "train_freq": 1024,
+        "gradient_steps": 40,
+        "gamma": 1.0,
+        "loss": "mse",
+        "exploration_initial_eps": 0.5,
+        "exploration_final_eps": 0.5,
+        "policy_kwargs": "dict(net_arch=[512, 128], optimizer_class=th.optim.RMSprop)",
+    }
+
+
+@pytest.mark.parametrize("entry", [name for name in _hyperparameter_file() if name != "atari"])
+def test_every_entry_builds_nfq_and_trains_one_round(entry: str) -> None:
+    hyperparams = dict(_hyperparameter_file()[entry])
+    env_id = ENV_ID if entry == "default" else entry
+    if env_id == "LunarLander-v3":
+        pytest.importorskip("Box2D")
+    assert hyperparams.pop("n_timesteps") > 0
+    if isinstance(hyperparams.get("policy_kwargs"), str):
+        # As the zoo does: evaluated with torch as `th` and torch.nn as `nn` in scope
+        hyperparams["policy_kwargs"] = eval(hyperparams["policy_kwargs"], {"th": th, "nn": nn})
+    model = NFQ(env=gym.make(env_id), seed=0, **hyperparams)
+    assert isinstance(model.train_freq, TrainFreq)
+    model.learn(total_timesteps=model.train_freq.frequency)
+    assert model._n_updates > 0
+
+
+def test_atari_entry_builds_nfq_on_the_zoos_atari_stack_and_trains() -> None:
+    ale_py = pytest.importorskip("ale_py")
+    gym.register_envs(ale_py)
+    hyperparams = dict(_hyperparameter_file()["atari"])
+    # What the zoo builds from the entry: its wrapper, then frame stacking
+    assert hyperparams.pop("env_wrapper") == ["stable_baselines3.common.atari_wrappers.AtariWrapper"]
+    env = VecFrameStack(make_atari_env("PongNoFrameskip-v4", n_envs=1, seed=0), n_stack=hyperparams.pop("frame_stack"))
+    assert hyperparams.pop("n_timesteps") > 0
+    hyperparams["policy_kwargs"] = eval(hyperparams["policy_kwargs"], {"th": th, "nn": nn})
+    hyperparams.update(train_freq=64, gradient_steps=1)  # one small round: the entry's 4096 frames take minutes
+    model = NFQ(env=env, seed=0, **hyperparams)
+    model.learn(total_timesteps=64)
+    assert model._n_updates == 1  # 64 < batch_size: one full-batch step
+    assert model.q_net(model.policy.obs_to_tensor(env.reset())[0]).shape == (1, 6)
+
+
+# --- the Optuna search space ---
+
+
+def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() -> None:
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0), direction="maximize")
+    for _ in range(30):
+        trial = study.ask()
+        hyperparams = sample_nfq_params(trial, 0, 1, {"using_her_replay_buffer": False, "her_kwargs": {}})
+        assert convert_nfq_params(trial.params) == hyperparams  # what `--trial-id` reloads
+        assert set(trial.params) == {
+            "learning_rate",
+            "gradient_steps",
+            "exploration_initial_eps",
+            "exploration_final_eps",
+            "exploration_fraction",
+            "net_arch",
+            "optimizer",
+            *CATEGORICAL_SPACE,
+        }
+        assert trial.user_attrs["worker"] == f"{socket.gethostname()}:{os.getpid()}"
+        model = NFQ("MlpPolicy", ENV_ID, **hyperparams)
+        assert isinstance(model.policy.optimizer, OPTIMIZERS[trial.params["optimizer"]])
+        assert model.policy.net_arch == NET_ARCHS[trial.params["net_arch"]]
+        study.tell(trial, 0.0)
+    sampled_batch_sizes = {trial.params["batch_size"] for trial in study.trials}
+    assert None in sampled_batch_sizes and len(sampled_batch_sizes) > 1
+
+
+# --- train, enjoy, tune: the real zoo in subprocesses ---
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A zoo training run of two NFQ rounds on CartPole, with evaluations and checkpoints; yields its folder."""
+    workdir = tmp_path_factory.mktemp("zoo_train")
+    _check(
+        _zoo(
+            "train",
+            "--env",
+            ENV_ID,
+            "-n",
+            "2048",
+            "--eval-freq",
+            "1024",
+            "--eval-episodes",
+            "2",
+            "--save-freq",
+            "1024",
+            "--seed",
+            "0",
+            cwd=workdir,
+        )
+    )
+    yield workdir
+
+
+def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: Path) -> None:
+    run = trained_run / "logs" / ALGO_NAME / f"{ENV_ID}_1"
+    files = {path.name for path in run.iterdir()}
+    assert {
+        f"{ENV_ID}.zip",
+        "best_model.zip",  # --eval-freq
+        "evaluations.npz",
+        "rl_model_1024_steps.zip",  # --save-freq
+        "rl_model_2048_steps.zip",
+    } <= files
+
+    args = _read_yaml(run / ENV_ID / "args.yml")
+    assert args["algo"] == ALGO_NAME and args["conf_file"] == str(DEFAULT_CONF_FILE)
+    assert dict(_read_yaml(run / ENV_ID / "config.yml")) == _hyperparameter_file()[ENV_ID]
+
+    model = NFQ.load(run / f"{ENV_ID}.zip")
+    assert model.num_timesteps == 2048
+    assert isinstance(model.train_freq, TrainFreq)
+    assert (model.train_freq.frequency, model.gradient_steps, model.gamma) == (1024, 40, 1.0)
+    assert isinstance(model.policy.optimizer, th.optim.RMSprop)
+    assert model.policy.net_arch == [512, 128]
+    assert NFQ.load(run / "rl_model_1024_steps.zip").num_timesteps == 1024
+    assert NFQ.load(run / "best_model.zip").num_timesteps in (1024, 2048)
+
+
+def test_enjoy_runs_the_trained_agent(trained_run: Path) -> None:
+    # No --algo and no -f: the launcher's defaults find the run under ./logs/nfq
+    output = _check(_zoo("enjoy", "--env", ENV_ID, "--no-render", "-n", "300", "--deterministic", cwd=trained_run))
+    assert f"Loading logs/{ALGO_NAME}/{ENV_ID}_1/{ENV_ID}.zip" in output
+    assert "Mean reward:" in output
+
+
+def test_optimize_then_train_with_a_stored_trial(tmp_path: Path) -> None:
+    storage = tmp_path / "study.log"
+    output = _check(
+        _zoo(
+            "train",
+            "--env",
+            ENV_ID,
+            *TINY_OPTIMIZE_ARGS,
+            "--n-trials",
+            "2",
+            "--storage",
+            str(storage),
+            "--study-name",
+            "tiny",
+            "--seed",
+            "3",
+            cwd=tmp_path,
+        )
+    )
+    assert "Number of finished trials:  2" in output
+    assert list((tmp_path / "logs" / ALGO_NAME).glob(f"report_{ENV_ID}_2-trials-1024-*.csv"))
+
+    study = optuna.load_study(
+        study_name="tiny",
+        storage=optuna.storages.JournalStorage(JournalFileBackend(str(storage))),
+    )
+    assert [trial.state for trial in study.trials] == [TrialState.COMPLETE] * 2
+
+    # Train with trial 1's hyperparameters (the zoo ignores --trial-id 0: it tests the id for truth)
+    stored = study.trials[1].params
+    _check(
+        _zoo(
+            "train",
+            "--env",
+            ENV_ID,
+            "-n",
+            "64",
+            "--eval-freq",
+            "-1",
+            "--storage",
+            str(storage),
+            "--study-name",
+            "tiny",
+            "--trial-id",
+            "1",
+            cwd=tmp_path,
+        )
+    )
+    model = NFQ.load(next((tmp_path / "logs" / ALGO_NAME).glob(f"{ENV_ID}_*/{ENV_ID}.zip")))
+    assert model.lr_schedule(1.0) == pytest.approx(stored["learning_rate"])
+    assert model.gradient_steps == stored["gradient_steps"]
+    assert (model.gamma, model.batch_size, model.loss) == (stored["gamma"], stored["batch_size"], stored["loss"])
+    assert isinstance(model.policy.optimizer, OPTIMIZERS[stored["optimizer"]])
+    assert model.policy.net_arch == NET_ARCHS[stored["net_arch"]]
+
+
+@pytest.mark.parametrize("storage_kind", ["journal", "sqlite"])
+def test_two_processes_cooperate_on_one_study(tmp_path: Path, storage_kind: str) -> None:
+    study_name = "nfq-shared"
+    if storage_kind == "journal":
+        # The zoo opens a path ending in .log as a JournalFileBackend, creating its folder
+        storage_arg = str(tmp_path / "shared" / "study.log")
+    else:
+        storage_arg = f"sqlite:///{tmp_path / 'study.db'}"
+        # An RDB study is created once before the workers start (two first connections would race on the schema)
+        optuna.create_study(storage=storage_arg, study_name=study_name, direction="maximize")
+    n_trials = {"a": 1, "b": 2}
+    workers = {
+        name: _start_zoo(
+            "train",
+            "--env",
+            ENV_ID,
+            *TINY_OPTIMIZE_ARGS,
+            "--n-trials",
+            str(count),
+            "--storage",
+            storage_arg,
+            "--study-name",
+            study_name,
+            "--seed",
+            str(index),  # different seeds: the workers sample different hyperparameters
+            "-f",
+            str(tmp_path / f"logs_{name}"),
+            cwd=tmp_path,
+            output=tmp_path / f"worker_{name}.txt",
+        )
+        for index, (name, count) in enumerate(n_trials.items())
+    }
+    try:
+        for worker in workers.values():
+            worker.wait(timeout=TIMEOUT_S)
+    finally:
+        for worker in workers.values():
+            if worker.poll() is None:
+                worker.kill()
+                worker.wait()
+    for name, worker in workers.items():
+        output = (tmp_path / f"worker_{name}.txt").read_text()
+        assert worker.returncode == 0, f"worker {name}:\n{output[-4000:]}"
+        assert "Number of finished trials: " in output
+
+    storage: Any = storage_arg
+    if storage_kind == "journal":
+        assert (tmp_path / "shared" / "study.log").is_file()
+        storage = optuna.storages.JournalStorage(JournalFileBackend(storage_arg))
+    study = optuna.load_study(study_name=study_name, storage=storage)
+    trials = study.get_trials(states=[TrialState.COMPLETE])
+    assert len(study.trials) == len(trials) == sum(n_trials.values())
+    assert sorted(trial.number for trial in trials) == list(range(sum(n_trials.values())))
+    ran_by = [trial.user_attrs["worker"] for trial in trials]
+    for name, worker in workers.items():
+        assert ran_by.count(f"{socket.gethostname()}:{worker.pid}") == n_trials[name]
+    assert study.user_attrs["command"].startswith(sys.executable)  # the first worker's command line

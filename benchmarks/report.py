@@ -1,0 +1,485 @@
+"""
+Turn the runner's JSON lines into ``benchmarks/results/README.md`` and learning-curve PNGs.
+
+    python -m benchmarks.report [--results benchmarks/results/runs.jsonl] [--out-dir benchmarks/results]
+
+Per env and algorithm: seeds, success rate, steps to solve (median and IQR; IQM with a 95% stratified-bootstrap
+CI from ``rliable``), final greedy score at the budget, training seconds. Runs that never solved count as their
+number of trained steps (censored): a statistic that reaches a censored value is a lower bound, shown as ``≥``.
+Then the project's targets, each "met", "not met" or "not enough data", and one PNG of learning curves per env
+(mean greedy return over seeds with a 95% bootstrap band).
+"""
+
+import argparse
+import functools
+import math
+import shlex
+import sys
+import warnings
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from benchmarks import configs
+from benchmarks.run import DEFAULT_RESULTS, read_results
+
+BOOTSTRAP_REPS = 2000
+#: A config "solves" an env when at least this fraction of its seeds solved it (4/5).
+SOLVE_FRACTION = 0.8
+#: Seeds needed before a target is judged.
+MIN_SEEDS = 5
+#: The nfq-shared target: this many of the four envs solved in >= 4/5 seeds (all of them).
+SHARED_ENVS_TARGET = 4
+
+
+# --- statistics -------------------------------------------------------------------------------------------------
+
+
+@functools.cache
+def _rliable_library() -> ModuleType | str:
+    """:return: ``rliable.library``, or why it cannot be imported (it needs ``arch``, whose 7.x breaks on pandas 3)"""
+    try:
+        from rliable import library
+
+        return library
+    except Exception as error:
+        return f"{type(error).__name__}: {error}"
+
+
+def iqm_with_ci(values: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
+    """
+    :param values: one value per run
+    :param seed: bootstrap seed
+    :return: the interquartile mean (``rliable.metrics.aggregate_iqm``) and its 95% percentile-bootstrap CI
+        (``rliable.library.get_interval_estimates``, runs resampled with replacement; if ``rliable.library`` cannot
+        be imported, the same bootstrap done here with ``aggregate_iqm``)
+    """
+    from rliable import metrics
+
+    scores = np.asarray(values, dtype=float).reshape(-1, 1)  # (runs, tasks=1), rliable's layout
+    point = float(metrics.aggregate_iqm(scores))
+    if len(scores) < 2:
+        return point, point, point
+    library = _rliable_library()
+    if isinstance(library, ModuleType):
+        with warnings.catch_warnings():  # arch deprecates random_state; rliable 1.2 still passes it
+            warnings.simplefilter("ignore", FutureWarning)
+            _, intervals = library.get_interval_estimates(
+                {"x": scores},
+                lambda x: np.array([metrics.aggregate_iqm(x)]),
+                reps=BOOTSTRAP_REPS,
+                random_state=np.random.RandomState(seed),
+            )
+        return point, float(intervals["x"][0, 0]), float(intervals["x"][1, 0])
+    rng = np.random.default_rng(seed)
+    resampled = [
+        metrics.aggregate_iqm(scores[rng.integers(len(scores), size=len(scores))]) for _ in range(BOOTSTRAP_REPS)
+    ]
+    low, high = np.percentile(resampled, [2.5, 97.5])
+    return point, float(low), float(high)
+
+
+def ci_method() -> str:
+    """:return: how the IQM confidence intervals are computed, for the report"""
+    library = _rliable_library()
+    if isinstance(library, ModuleType):
+        return f"rliable `get_interval_estimates` (percentile bootstrap over runs, {BOOTSTRAP_REPS} resamples)"
+    return (
+        f"percentile bootstrap over runs with rliable's `aggregate_iqm`, {BOOTSTRAP_REPS} resamples "
+        f"(rliable.library could not be imported: {library})"
+    )
+
+
+@dataclass
+class Cell:
+    """The runs of one algorithm config on one env (one budget, one config hash), one per seed."""
+
+    env: str
+    algo: str
+    budget: int
+    config_hash: str
+    runs: list[dict[str, Any]]
+    label: str = ""
+
+    @property
+    def n(self) -> int:
+        """:return: number of runs (seeds)"""
+        return len(self.runs)
+
+    @property
+    def placeholder(self) -> bool:
+        """:return: whether the runs used a placeholder config"""
+        return any(run.get("placeholder_config") for run in self.runs)
+
+    def steps(self) -> tuple[np.ndarray, np.ndarray]:
+        """:return: steps to solve per run (unsolved: steps trained) and whether each is censored (unsolved)"""
+        censored = np.array([run["steps_to_solve"] is None for run in self.runs])
+        steps = np.array(
+            [run["steps_trained"] if run["steps_to_solve"] is None else run["steps_to_solve"] for run in self.runs],
+            dtype=float,
+        )
+        return steps, censored
+
+    def steps_quantile(self, q: float) -> tuple[float, bool]:
+        """
+        :param q: quantile in [0, 100]
+        :return: the quantile of the steps to solve, and whether it is only a lower bound (reaches an unsolved run)
+        """
+        steps, censored = self.steps()
+        value = float(np.percentile(steps, q))
+        return value, bool(censored.any() and value >= steps[censored].min())
+
+    def success_rate(self) -> float:
+        """:return: fraction of runs that solved"""
+        return float(np.mean([run["steps_to_solve"] is not None for run in self.runs]))
+
+    def final_scores(self) -> np.ndarray:
+        """:return: final greedy score of each run"""
+        return np.array([run["final_score"] for run in self.runs], dtype=float)
+
+    def train_seconds(self) -> np.ndarray:
+        """:return: training seconds (evaluation excluded) of each run"""
+        return np.array([run["train_seconds"] for run in self.runs], dtype=float)
+
+
+def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
+    """
+    :param records: result lines
+    :return: env -> cells, in :data:`configs.ENVS` then algorithm order; within a (env, algo), the cell with the
+        most seeds first (the one targets use). A seed that appears twice in a cell keeps its last line.
+    """
+    grouped: dict[tuple[str, str, int, str], dict[int, dict[str, Any]]] = defaultdict(dict)
+    for record in records:
+        grouped[(record["env"], record["algo"], int(record["budget"]), record["config_hash"])][record["seed"]] = record
+    by_env: dict[str, list[Cell]] = defaultdict(list)
+    for (env, algo, budget, config_hash), runs in grouped.items():
+        by_env[env].append(Cell(env, algo, budget, config_hash, [runs[seed] for seed in sorted(runs)]))
+    env_order: dict[str, int] = {}
+    for env in [*configs.ENVS, *sorted(by_env)]:
+        env_order.setdefault(env, len(env_order))
+    algo_order = {algo: index for index, algo in enumerate(configs.algorithm_names())}
+    result = {}
+    for env in sorted(by_env, key=lambda name: env_order[name]):
+        cells = sorted(by_env[env], key=lambda cell: (algo_order.get(cell.algo, len(algo_order)), cell.algo, -cell.n))
+        for cell in cells:
+            several = sum(other.algo == cell.algo for other in cells) > 1
+            cell.label = f"{cell.algo} (budget {cell.budget:,}, config {cell.config_hash})" if several else cell.algo
+            if cell.placeholder:
+                cell.label += " *"
+        result[env] = cells
+    return result
+
+
+def primary_cell(cells_by_env: dict[str, list[Cell]], env: str, algo: str) -> Cell | None:
+    """:return: the cell of ``algo`` on ``env`` with the most seeds, if any"""
+    cells = [cell for cell in cells_by_env.get(env, []) if cell.algo == algo]
+    return max(cells, key=lambda cell: cell.n) if cells else None
+
+
+# --- formatting -------------------------------------------------------------------------------------------------
+
+
+def _steps(value: float, lower_bound: bool) -> str:
+    return f"{'≥' if lower_bound else ''}{value:,.0f}"
+
+
+def table_rows(cells: Sequence[Cell]) -> list[str]:
+    """:return: the markdown table of one env"""
+    rows = [
+        "| algorithm | seeds | budget | success | steps to solve: median [IQR] | IQM [95% CI] | "
+        "final score at budget: mean ± sd (≥ threshold) | train s: median [IQR] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for cell in cells:
+        median, median_bound = cell.steps_quantile(50)
+        q1, q1_bound = cell.steps_quantile(25)
+        q3, q3_bound = cell.steps_quantile(75)
+        steps, censored = cell.steps()
+        iqm, low, high = iqm_with_ci(steps)
+        iqm_bound = int(censored.sum()) > math.floor(0.25 * cell.n)
+        scores = cell.final_scores()
+        threshold = cell.runs[0]["threshold"]
+        seconds = cell.train_seconds()
+        s1, s2, s3 = np.percentile(seconds, [25, 50, 75])
+        rows.append(
+            f"| {cell.label} | {cell.n} | {cell.budget:,} | {cell.success_rate():.0%} "
+            f"| {_steps(median, median_bound)} [{_steps(q1, q1_bound)}, {_steps(q3, q3_bound)}] "
+            f"| {_steps(iqm, iqm_bound)} [{low:,.0f}, {high:,.0f}] "
+            f"| {scores.mean():.1f} ± {scores.std():.1f} ({int((scores >= threshold).sum())}/{cell.n}) "
+            f"| {s2:.1f} [{s1:.1f}, {s3:.1f}] |"
+        )
+    return rows
+
+
+# --- targets ----------------------------------------------------------------------------------------------------
+
+
+def _median_interval(cell: Cell) -> tuple[float, float]:
+    """:return: the range the true median steps to solve lies in (upper end inf when censored)"""
+    value, bound = cell.steps_quantile(50)
+    return value, math.inf if bound else value
+
+
+def ratio_target(
+    cells_by_env: dict[str, list[Cell]], env: str, numerator: str, denominator: str, low: float, high: float
+) -> tuple[str, str]:
+    """
+    Judge ``median steps(numerator) / median steps(denominator)`` against ``[low, high]``. Censored medians make the
+    ratio an interval; the target is met/not met only when the whole interval is inside/outside the range.
+
+    :return: (verdict, the ratio as text)
+    """
+    num, den = primary_cell(cells_by_env, env, numerator), primary_cell(cells_by_env, env, denominator)
+    if num is None or den is None or num.n < MIN_SEEDS or den.n < MIN_SEEDS:
+        have = f"{numerator}: {num.n if num else 0} seeds, {denominator}: {den.n if den else 0} seeds"
+        return "not enough data", f"needs {MIN_SEEDS} seeds each ({have})"
+    num_low, num_high = _median_interval(num)
+    den_low, den_high = _median_interval(den)
+    ratio_low = num_low / den_high if den_high < math.inf else 0.0
+    ratio_high = num_high / den_low
+    if ratio_low == ratio_high:
+        text = f"{ratio_low:.2f} ({num_low:,.0f} / {den_low:,.0f})"
+    elif ratio_high == math.inf and ratio_low > 0:
+        text = f"≥ {ratio_low:.2f} (median of {numerator} did not solve)"
+    elif ratio_low == 0 and ratio_high < math.inf:
+        text = f"≤ {ratio_high:.2f} (median of {denominator} did not solve)"
+    else:
+        text = "unknown: neither median solved"
+    if low <= ratio_low and ratio_high <= high:
+        return "met", text
+    if ratio_high < low or ratio_low > high:
+        return "not met", text
+    return "not enough data", text
+
+
+def shared_target(cells_by_env: dict[str, list[Cell]]) -> tuple[str, str]:
+    """:return: (verdict, text) for "nfq-shared solves the envs in >= 4/5 seeds" """
+    solved, unknown, parts = 0, 0, []
+    for env in configs.ENVS:
+        cell = primary_cell(cells_by_env, env, "nfq-shared")
+        if cell is None or cell.n < MIN_SEEDS:
+            unknown += 1
+            parts.append(f"{env}: {cell.n if cell else 0} seeds")
+        else:
+            ok = cell.success_rate() >= SOLVE_FRACTION
+            solved += ok
+            parts.append(f"{env}: {sum(run['solved'] for run in cell.runs)}/{cell.n}")
+    text = f"{solved} of {len(configs.ENVS)} envs solved in ≥ 4/5 seeds ({'; '.join(parts)})"
+    if solved >= SHARED_ENVS_TARGET:
+        return "met", text
+    if solved + unknown < SHARED_ENVS_TARGET:
+        return "not met", text
+    return "not enough data", text
+
+
+def final_score_target(cells_by_env: dict[str, list[Cell]], env: str, algo: str) -> tuple[str, str]:
+    """:return: (verdict, text) for "final score >= threshold in >= 4/5 seeds" """
+    cell = primary_cell(cells_by_env, env, algo)
+    if cell is None or cell.n < MIN_SEEDS:
+        return "not enough data", f"needs {MIN_SEEDS} seeds ({cell.n if cell else 0})"
+    scores = cell.final_scores()
+    threshold = cell.runs[0]["threshold"]
+    passed = int((scores >= threshold).sum())
+    text = f"{passed}/{cell.n} seeds with final score ≥ {threshold:g} (scores {', '.join(f'{s:.0f}' for s in scores)})"
+    return ("met" if passed / cell.n >= SOLVE_FRACTION else "not met"), text
+
+
+def target_lines(cells_by_env: dict[str, list[Cell]]) -> list[str]:
+    """:return: the markdown lines of the targets section"""
+    cartpole = "CartPole-v1"
+    targets = [
+        (
+            "nfq-book / reference-nfq median steps to solve on CartPole-v1 within ±25% (0.75 to 1.25)",
+            ratio_target(cells_by_env, cartpole, "nfq-book", "reference-nfq", 0.75, 1.25),
+            ["nfq-book", "reference-nfq"],
+        ),
+        (
+            "nfq-tuned / dqn-zoo median steps to solve on CartPole-v1 ≤ 0.75",
+            ratio_target(cells_by_env, cartpole, "nfq-tuned", "dqn-zoo", 0.0, 0.75),
+            ["nfq-tuned"],
+        ),
+        (
+            f"nfq-shared (one config) solves ≥ {SHARED_ENVS_TARGET} of the 4 envs in ≥ 4/5 seeds",
+            shared_target(cells_by_env),
+            ["nfq-shared"],
+        ),
+        (
+            "nfq-tuned final score at budget ≥ 475 on CartPole-v1 in ≥ 4/5 seeds",
+            final_score_target(cells_by_env, cartpole, "nfq-tuned"),
+            ["nfq-tuned"],
+        ),
+    ]
+    lines = ["| target | verdict | measured |", "|---|---|---|"]
+    for name, (verdict, text), algos in targets:
+        placeholder = any(cell.placeholder for env in cells_by_env for cell in cells_by_env[env] if cell.algo in algos)
+        note = " (placeholder config)" if placeholder else ""
+        lines.append(f"| {name} | **{verdict}**{note} | {text} |")
+    return lines
+
+
+# --- learning curves --------------------------------------------------------------------------------------------
+
+
+def plot_curves(env: str, cells: Sequence[Cell], path: Path, seed: int = 0) -> None:
+    """
+    One PNG: per cell, the mean greedy return over seeds (curves interpolated on a common step grid, each run only
+    up to its last evaluation) with a 95% bootstrap band over seeds; the threshold as a dashed line.
+
+    :param env: env id (title)
+    :param cells: the env's cells
+    :param path: where to write the PNG
+    :param seed: bootstrap seed
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rng = np.random.default_rng(seed)
+    figure, axes = plt.subplots(figsize=(8, 4.5))
+    for cell in cells:
+        curves = [np.asarray(run["curve"], dtype=float) for run in cell.runs if run["curve"]]
+        if not curves:
+            continue
+        last = max(curve[-1, 0] for curve in curves)
+        grid = np.linspace(0, last, 200)
+        values = np.full((len(curves), len(grid)), np.nan)
+        for row, curve in zip(values, curves, strict=True):
+            inside = grid <= curve[-1, 0]
+            row[inside] = np.interp(grid[inside], curve[:, 0], curve[:, 1])
+        counts = np.sum(~np.isnan(values), axis=0)
+        keep = counts > 0
+        mean = np.nanmean(values[:, keep], axis=0)
+        resamples = values[rng.integers(len(curves), size=(BOOTSTRAP_REPS // 4, len(curves)))][:, :, keep]
+        with warnings.catch_warnings():  # a resample may hold no run that reached a step: its mean is NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            means = np.nanmean(resamples, axis=1)
+            low, high = np.nanpercentile(means, [2.5, 97.5], axis=0)
+        (line,) = axes.plot(grid[keep], mean, label=f"{cell.label} (n={cell.n})")
+        axes.fill_between(grid[keep], low, high, color=line.get_color(), alpha=0.2)
+    threshold = cells[0].runs[0]["threshold"] if cells else None
+    if threshold is not None:
+        axes.axhline(threshold, color="black", linestyle="--", linewidth=1, label=f"threshold {threshold:g}")
+    axes.set_title(f"{env}: mean greedy return over seeds, 95% bootstrap CI", fontsize="medium")
+    axes.set_xlabel("environment steps")
+    axes.set_ylabel("greedy return (mean of 100 episodes)")
+    axes.legend(fontsize="small")
+    axes.grid(alpha=0.3)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+# --- the report -------------------------------------------------------------------------------------------------
+
+
+def curve_filename(env: str) -> str:
+    """:return: the PNG name of an env's learning curves"""
+    return f"curves_{env}.png"
+
+
+def _unique(records: Sequence[dict[str, Any]], key: str) -> list[Any]:
+    seen: dict[str, Any] = {}
+    for record in records:
+        value = record.get(key)
+        seen.setdefault(repr(value), value)
+    return list(seen.values())
+
+
+def build_report(records: Sequence[dict[str, Any]], out_dir: Path, results_path: Path, command: str) -> str:
+    """
+    Write ``README.md`` and the learning-curve PNGs into ``out_dir``.
+
+    :param records: result lines
+    :param out_dir: output folder
+    :param results_path: where the records came from (named in the report)
+    :param command: the report command (printed in the report)
+    :return: the markdown text
+    """
+    cells_by_env = build_cells(records)
+    lines = [
+        "# NFQ benchmark results",
+        "",
+        f"Generated by `{command}` from {len(records)} runs in `{results_path}`.",
+        "",
+        "## How the data was produced",
+        "",
+        "Runner command(s), exactly as recorded with the runs:",
+        "",
+        *[f"    {cmd}" for cmd in _unique(records, "command")],
+        "",
+        "Machine(s): " + "; ".join(f"`{machine}`" for machine in _unique(records, "machine")),
+        "",
+        "Torch threads per job: "
+        + ", ".join(str(t) for t in _unique(records, "torch_threads"))
+        + "; launcher: "
+        + ", ".join(str(t) for t in _unique(records, "launcher")),
+        "",
+        "Versions: "
+        + "; ".join(", ".join(f"{k} {v}" for k, v in (vs or {}).items()) for vs in _unique(records, "versions")),
+        "",
+        "Code revision(s): " + ", ".join(f"`{rev}`" for rev in _unique(records, "git")),
+        "",
+        "Criterion (every algorithm): after each NFQ/reference round, or for DQN at the first rollout start at or "
+        "after each multiple of `eval_every` env steps, the greedy policy plays 100 episodes on separate envs; a run "
+        "is solved at the first evaluation whose mean return reaches the threshold. Training goes on to the budget, "
+        "then 100 new greedy episodes give the final score. Training seconds exclude evaluation time.",
+        "",
+        f"Steps to solve: unsolved runs count as the steps they trained (censored), so a value marked ≥ is a lower "
+        f"bound. IQM and its 95% CI: {ci_method()}. Rows marked * use a placeholder config (the book's settings until "
+        "tuned values are supplied).",
+        "",
+        "## Targets",
+        "",
+        *target_lines(cells_by_env),
+        "",
+    ]
+    for env, cells in cells_by_env.items():
+        eval_every = ", ".join(str(e) for e in _unique([run for cell in cells for run in cell.runs], "eval_every"))
+        threshold = cells[0].runs[0]["threshold"]
+        lines += [
+            f"## {env} (threshold {threshold:g}, evaluation every {eval_every} steps)",
+            "",
+            *table_rows(cells),
+            "",
+            f"![{env} learning curves]({curve_filename(env)})",
+            "",
+        ]
+        plot_curves(env, cells, out_dir / curve_filename(env))
+    text = "\n".join(lines)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "README.md").write_text(text)
+    return text
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Command-line entry point.
+
+    :param argv: arguments (default: ``sys.argv[1:]``)
+    :return: exit status (1 when there are no results)
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="the runner's JSON-lines file")
+    parser.add_argument("--out-dir", type=Path, help="where README.md and the PNGs go (default: the results' folder)")
+    args = parser.parse_args(argv)
+    records = read_results(args.results)
+    if not records:
+        print(f"no results in {args.results}", file=sys.stderr)
+        return 1
+    out_dir = args.out_dir or args.results.parent
+    command = shlex.join(["python", "-m", "benchmarks.report", *argv])
+    print(build_report(records, out_dir, args.results, command))
+    print(f"\nwrote {out_dir / 'README.md'} and {len(build_cells(records))} PNG(s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,738 @@
+"""
+Benchmark runner: train (algorithm config x env x seed) jobs and append one JSON line per finished job.
+
+    python -m benchmarks.run [--algos nfq-book reference-nfq dqn-zoo] [--envs CartPole-v1 ...] [--seeds 0-4]
+        [--budget N] [--eval-every N] [--stop-at-solve] [--workers 2] [--results benchmarks/results/runs.jsonl]
+        [--ray-address local|auto|ray://host:10001] [--dry-run]
+
+Criterion, the same for every algorithm: after each NFQ round (each reference round; for DQN at the first rollout
+start at or after each multiple of ``eval_every`` env steps), the greedy policy plays ``N_EVAL_EPISODES`` = 100
+episodes on separate envs (fixed episode seeds, the same at every evaluation of a job), all in lockstep with one
+batched forward pass per step. The job is "solved" at the first evaluation whose mean return reaches the env's
+threshold; training goes on to the budget (unless ``--stop-at-solve``), then 100 new greedy episodes give the
+final score.
+
+Timing: each job runs in its own process (spawned; or as a Ray task with ``num_cpus=1``) with
+``torch.set_num_threads(1)``, and at most as many jobs run at once as there are cores. ``train_seconds`` is the
+time spent in ``learn()`` minus the time spent evaluating inside it.
+
+Resumable: a job whose key (algo, env, seed, budget, config hash) is already in the results file is skipped.
+"""
+
+import argparse
+import concurrent.futures
+import contextlib
+import datetime
+import enum
+import hashlib
+import importlib.metadata
+import json
+import multiprocessing
+import os
+import platform
+import shlex
+import socket
+import subprocess
+import sys
+import time
+import traceback
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from torch import nn
+
+from benchmarks import configs
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_RESULTS = REPO_ROOT / "benchmarks" / "results" / "runs.jsonl"
+#: Bumped when the evaluation protocol changes, so that old results do not count as done.
+PROTOCOL_VERSION = 1
+#: Episode seeds: the learning-curve evaluations of seed s use CURVE_SEED_BASE + 1000 * s + i for episode i,
+#: the final evaluation FINAL_SEED_BASE + 1000 * s + i (episodes never seen during training).
+CURVE_SEED_BASE = 1_000_000
+FINAL_SEED_BASE = 2_000_000
+
+Actor = Callable[[np.ndarray], np.ndarray]
+
+
+# --- machine and versions ---------------------------------------------------------------------------------------
+
+
+def usable_cores() -> int:
+    """:return: the number of CPU cores this process may run on"""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def machine_line() -> str:
+    """:return: one line describing this machine: CPU model, cores, memory, OS"""
+    model = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    memory = ""
+    with contextlib.suppress(ValueError, OSError, AttributeError):
+        memory = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.0f} GiB RAM"
+    return f"{model}, {usable_cores()} cores ({platform.machine()}){memory}, {platform.system()} {platform.release()}"
+
+
+def package_versions() -> dict[str, str]:
+    """:return: versions of the packages a result depends on"""
+    import stable_baselines3
+
+    import sb3_nfq
+
+    versions = {
+        "sb3_nfq": sb3_nfq.__version__,
+        "stable_baselines3": stable_baselines3.__version__,
+        "torch": th.__version__,
+        "gymnasium": gym.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
+    with contextlib.suppress(importlib.metadata.PackageNotFoundError):
+        versions["rl_zoo3"] = importlib.metadata.version("rl_zoo3")
+    return versions
+
+
+def git_revision() -> str | None:
+    """:return: the repository's commit (with ``+dirty`` if sb3_nfq/ or benchmarks/ have local changes), if known"""
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "sb3_nfq", "benchmarks"],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return commit + ("+dirty" if dirty else "")
+
+
+# --- jobs -------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Job:
+    """
+    One training run: an algorithm config on one env with one seed.
+
+    :param algo: algorithm config name
+    :param kind: ``nfq``, ``reference`` or ``dqn``
+    :param env_id: gymnasium env id
+    :param seed: random seed (model, training env, evaluation episodes)
+    :param budget: env-step budget
+    :param kwargs: the config's constructor kwargs (plain data)
+    :param threshold: solve threshold (mean greedy return)
+    :param eval_every: evaluation period in env steps
+    :param n_eval_episodes: greedy episodes per evaluation
+    :param stop_at_solve: stop training at the first solved evaluation
+    :param placeholder: whether the config is a placeholder
+    :param source: where the config comes from
+    :param command: the runner command that created the job
+    :param git: the repository revision of the driver
+    """
+
+    algo: str
+    kind: configs.AlgoKind
+    env_id: str
+    seed: int
+    budget: int
+    kwargs: dict[str, Any] = field(hash=False)
+    threshold: float
+    eval_every: int
+    n_eval_episodes: int = configs.N_EVAL_EPISODES
+    stop_at_solve: bool = False
+    placeholder: bool = False
+    source: str = ""
+    command: str = ""
+    git: str | None = None
+
+    @property
+    def config_hash(self) -> str:
+        """:return: a short hash of everything but the seed and budget that changes what the job measures"""
+        payload = {
+            "kind": self.kind,
+            "kwargs": self.kwargs,
+            "threshold": self.threshold,
+            "eval_every": self.eval_every,
+            "n_eval_episodes": self.n_eval_episodes,
+            "stop_at_solve": self.stop_at_solve,
+            "protocol": PROTOCOL_VERSION,
+        }
+        return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:12]
+
+    @property
+    def key(self) -> tuple[str, str, int, int, str]:
+        """:return: the resumability key (algo, env, seed, budget, config hash)"""
+        return (self.algo, self.env_id, self.seed, self.budget, self.config_hash)
+
+
+def make_jobs(
+    algos: Sequence[str],
+    envs: Sequence[str],
+    seeds: Sequence[int],
+    budget: int | None = None,
+    eval_every: int | None = None,
+    n_eval_episodes: int = configs.N_EVAL_EPISODES,
+    stop_at_solve: bool = False,
+    command: str = "",
+) -> list[Job]:
+    """
+    :param algos: algorithm config names
+    :param envs: env ids
+    :param seeds: seeds
+    :param budget: env-step budget for every job (default: each config's budget on each env)
+    :param eval_every: evaluation period for every job (default: each env's)
+    :param n_eval_episodes: greedy episodes per evaluation
+    :param stop_at_solve: stop each job at its first solved evaluation
+    :param command: the command line, recorded with each result
+    :return: the jobs, algorithm-major
+    """
+    git = git_revision()
+    jobs = []
+    for algo in algos:
+        for env_id in envs:
+            config = configs.resolve(algo, env_id)
+            for seed in seeds:
+                jobs.append(
+                    Job(
+                        algo=algo,
+                        kind=config.kind,
+                        env_id=env_id,
+                        seed=seed,
+                        budget=budget if budget is not None else config.budget,
+                        kwargs=config.kwargs,
+                        threshold=config.threshold,
+                        eval_every=eval_every if eval_every is not None else config.eval_every,
+                        n_eval_episodes=n_eval_episodes,
+                        stop_at_solve=stop_at_solve,
+                        placeholder=config.placeholder,
+                        source=config.source,
+                        command=command,
+                        git=git,
+                    )
+                )
+    return jobs
+
+
+def result_key(record: dict[str, Any]) -> tuple[str, str, int, int, str]:
+    """:return: the resumability key of a result line"""
+    return (record["algo"], record["env"], int(record["seed"]), int(record["budget"]), record["config_hash"])
+
+
+def read_results(path: Path) -> list[dict[str, Any]]:
+    """
+    :param path: a results file (JSON lines); missing means empty
+    :return: its records (a line that is not valid JSON, e.g. cut by a crash, is skipped with a warning)
+    """
+    if not path.exists():
+        return []
+    records = []
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            print(f"warning: {path}:{number} is not valid JSON, ignored", file=sys.stderr)
+    return records
+
+
+def append_result(path: Path, record: dict[str, Any]) -> None:
+    """Append one JSON line (only the driver process writes, so lines never interleave)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a") as file:
+        file.write(json.dumps(record) + "\n")
+        file.flush()
+        os.fsync(file.fileno())
+
+
+# --- evaluation -------------------------------------------------------------------------------------------------
+
+
+class GreedyEvaluator:
+    """
+    Plays ``n_episodes`` episodes at once, one per env, with a batched greedy policy: each step, one call of
+    ``act`` on the observations of the episodes still running. Episode ``i`` always starts from
+    ``reset(seed=seed_base + i)``, so every evaluation of a job uses the same start states.
+
+    :param env_id: gymnasium env id
+    :param n_episodes: episodes per evaluation
+    :param seed_base: seed of the first episode
+    """
+
+    def __init__(self, env_id: str, n_episodes: int, seed_base: int) -> None:
+        self.envs = [gym.make(env_id) for _ in range(n_episodes)]
+        self.seeds = [seed_base + i for i in range(n_episodes)]
+
+    def evaluate(self, act: Actor) -> np.ndarray:
+        """
+        :param act: greedy policy on a batch of observations ``(k, obs_dim) -> (k,)``
+        :return: the return of each episode
+        """
+        observations = np.stack([env.reset(seed=seed)[0] for env, seed in zip(self.envs, self.seeds, strict=True)])
+        returns = np.zeros(len(self.envs))
+        running = np.arange(len(self.envs))
+        while running.size:
+            actions = np.asarray(act(observations[running])).reshape(-1)
+            still_running = []
+            for index, action in zip(running, actions, strict=True):
+                obs, reward, terminated, truncated, _ = self.envs[index].step(int(action))
+                returns[index] += float(reward)
+                observations[index] = obs
+                if not (terminated or truncated):
+                    still_running.append(index)
+            running = np.asarray(still_running, dtype=int)
+        return returns
+
+
+class SolveTracker:
+    """
+    Runs the periodic greedy evaluations of one job and keeps its learning curve and the time spent evaluating.
+
+    :param evaluator: plays the evaluation episodes
+    :param threshold: solved when the mean return reaches this
+    :param eval_every: evaluate at the first call at or after each multiple of this many env steps
+    :param stop_at_solve: ask training to stop at the first solved evaluation
+    """
+
+    def __init__(self, evaluator: GreedyEvaluator, threshold: float, eval_every: int, stop_at_solve: bool) -> None:
+        self.evaluator = evaluator
+        self.threshold = threshold
+        self.eval_every = eval_every
+        self.stop_at_solve = stop_at_solve
+        self.curve: list[list[float]] = []
+        self.steps_to_solve: int | None = None
+        self.eval_seconds = 0.0
+        self.stopped = False
+        self._next_eval = 0
+
+    def evaluate(self, steps: int, act: Actor) -> float:
+        """
+        :param steps: env steps trained so far
+        :param act: greedy policy
+        :return: the mean greedy return, also added to the curve
+        """
+        start = time.perf_counter()
+        mean = float(np.mean(self.evaluator.evaluate(act)))
+        self.eval_seconds += time.perf_counter() - start
+        self.curve.append([steps, mean])
+        self._next_eval = (steps // self.eval_every + 1) * self.eval_every
+        if mean >= self.threshold and self.steps_to_solve is None:
+            self.steps_to_solve = steps
+        return mean
+
+    def maybe_evaluate(self, steps: int, act: Actor) -> bool:
+        """
+        :param steps: env steps trained so far
+        :param act: greedy policy
+        :return: whether training should go on
+        """
+        if steps >= self._next_eval:
+            self.evaluate(steps, act)
+        self.stopped = self.stop_at_solve and self.steps_to_solve is not None
+        return not self.stopped
+
+    def finish(self, steps: int, act: Actor) -> None:
+        """Evaluate the final policy unless it was just evaluated or training stopped at the solve."""
+        if not self.stopped and (not self.curve or self.curve[-1][0] != steps):
+            self.evaluate(steps, act)
+
+
+def _round_end_callback(tracker: SolveTracker, act: Actor) -> Any:
+    """
+    :param tracker: the job's evaluations
+    :param act: the model's greedy policy
+    :return: an SB3 callback that evaluates at rollout starts (for NFQ: right after the previous round's fit) and
+        at the end of training
+    """
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class RoundEndEvaluation(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.keep_training = True
+
+        def _on_rollout_start(self) -> None:
+            self.keep_training = tracker.maybe_evaluate(self.model.num_timesteps, act)
+
+        def _on_step(self) -> bool:
+            return self.keep_training
+
+        def _on_training_end(self) -> None:
+            tracker.finish(self.model.num_timesteps, act)
+
+    return RoundEndEvaluation()
+
+
+# --- training ---------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Trained:
+    """What a trainer hands back: env steps trained, greedy policy, seconds in learn(), effective settings."""
+
+    steps: int
+    act: Actor
+    learn_seconds: float
+    effective: dict[str, Any]
+
+
+def _linear_schedule(initial: float) -> Callable[[float], float]:
+    def schedule(progress_remaining: float) -> float:
+        return progress_remaining * initial
+
+    return schedule
+
+
+def sb3_kwargs(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """
+    Turn Zoo-style plain-data kwargs into constructor kwargs, as the RL Zoo's ExperimentManager does:
+    ``policy_kwargs`` strings are evaluated (with ``dict``, ``nn`` and ``th`` in scope), ``"lin_<x>"`` learning
+    rates become linear schedules, ``train_freq`` lists become tuples.
+
+    :param kwargs: the config's kwargs (without ``n_envs``/``policy``)
+    :return: kwargs for the SB3 constructor
+    """
+    out = dict(kwargs)
+    if isinstance(out.get("policy_kwargs"), str):
+        out["policy_kwargs"] = eval(out["policy_kwargs"], {"__builtins__": {}, "dict": dict, "nn": nn, "th": th})
+    if isinstance(out.get("learning_rate"), str):
+        kind, value = out["learning_rate"].split("_")
+        if kind != "lin":
+            raise ValueError(f"unknown learning-rate schedule {out['learning_rate']!r} (the Zoo's 'lin_<x>' only)")
+        out["learning_rate"] = _linear_schedule(float(value))
+    if isinstance(out.get("train_freq"), list):
+        out["train_freq"] = tuple(out["train_freq"])
+    return out
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, type):
+        return f"{value.__module__}.{value.__qualname__}"
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, list | tuple):
+        return [_jsonable(item) for item in value]
+    if isinstance(value, dict):
+        return {str(key): _jsonable(item) for key, item in value.items()}
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    return repr(value)
+
+
+def _train_sb3(job: Job, tracker: SolveTracker) -> Trained:
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_nfq import NFQ
+
+    kwargs = dict(job.kwargs)
+    n_envs = int(kwargs.pop("n_envs", 1))
+    policy = kwargs.pop("policy", "MlpPolicy")
+    algorithm_class: Any = NFQ if job.kind == "nfq" else DQN
+    env = make_vec_env(job.env_id, n_envs=n_envs, seed=job.seed)
+    model = algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **sb3_kwargs(kwargs))
+
+    def act(observations: np.ndarray) -> np.ndarray:
+        return model.predict(observations, deterministic=True)[0]
+
+    start = time.perf_counter()
+    model.learn(job.budget, callback=_round_end_callback(tracker, act))
+    learn_seconds = time.perf_counter() - start
+
+    names = [
+        "learning_rate",
+        "gamma",
+        "batch_size",
+        "buffer_size",
+        "learning_starts",
+        "train_freq",
+        "gradient_steps",
+        "target_update_interval",
+        "exploration_initial_eps",
+        "exploration_final_eps",
+        "exploration_fraction",
+        "loss",
+        "max_grad_norm",
+        "n_envs",
+    ]
+    effective = {name: _jsonable(getattr(model, name)) for name in names if hasattr(model, name)}
+    effective["policy"] = type(model.policy).__name__
+    effective["net_arch"] = _jsonable(getattr(model.policy, "net_arch", None))
+    effective["optimizer"] = type(model.policy.optimizer).__name__
+    effective["q_net"] = str(model.q_net.q_net).replace("\n", "")
+    return Trained(model.num_timesteps, act, learn_seconds, effective)
+
+
+def _train_reference(job: Job, tracker: SolveTracker) -> Trained:
+    from benchmarks.reference_nfq import ReferenceNFQ
+
+    agent = ReferenceNFQ(job.env_id, seed=job.seed, **job.kwargs)
+    start = time.perf_counter()  # includes the evaluation at step 0, as SB3's learn() does
+    tracker.maybe_evaluate(0, agent.act)
+    agent.learn(job.budget, callback=lambda trained: tracker.maybe_evaluate(trained.num_timesteps, trained.act))
+    tracker.finish(agent.num_timesteps, agent.act)
+    learn_seconds = time.perf_counter() - start
+    effective = {
+        "gamma": agent.gamma,
+        "epsilon": agent.epsilon,
+        "transitions_per_round": agent.transitions_per_round,
+        "fitting_iterations": agent.fitting_iterations,
+        "learning_rate": agent.optimizer.param_groups[0]["lr"],
+        "optimizer": type(agent.optimizer).__name__,
+        "q_net": str(agent.q_net).replace("\n", ""),
+    }
+    return Trained(agent.num_timesteps, agent.act, learn_seconds, effective)
+
+
+def run_job(job: Job) -> dict[str, Any]:
+    """
+    Train one job and evaluate it. Pins ``torch.set_num_threads(1)``. Top-level, so worker processes and Ray
+    tasks can run it.
+
+    :param job: the job
+    :return: its result record (one JSON line)
+    """
+    wall_start = time.perf_counter()
+    th.set_num_threads(1)
+    curve_seed, final_seed = CURVE_SEED_BASE + 1000 * job.seed, FINAL_SEED_BASE + 1000 * job.seed
+    tracker = SolveTracker(
+        GreedyEvaluator(job.env_id, job.n_eval_episodes, curve_seed), job.threshold, job.eval_every, job.stop_at_solve
+    )
+    trained = (_train_reference if job.kind == "reference" else _train_sb3)(job, tracker)
+    final_returns = GreedyEvaluator(job.env_id, job.n_eval_episodes, final_seed).evaluate(trained.act)
+    return {
+        "algo": job.algo,
+        "env": job.env_id,
+        "seed": job.seed,
+        "budget": job.budget,
+        "config_hash": job.config_hash,
+        "kind": job.kind,
+        "config": job.kwargs,
+        "config_source": job.source,
+        "placeholder_config": job.placeholder,
+        "effective_hyperparams": trained.effective,
+        "threshold": job.threshold,
+        "n_eval_episodes": job.n_eval_episodes,
+        "eval_every": job.eval_every,
+        "eval_seeds": {"curve": curve_seed, "final": final_seed},
+        "stop_at_solve": job.stop_at_solve,
+        "solved": tracker.steps_to_solve is not None,
+        "steps_to_solve": tracker.steps_to_solve,
+        "steps_trained": trained.steps,
+        "stopped_at_solve": tracker.stopped,
+        "final_score": float(np.mean(final_returns)),
+        "final_score_std": float(np.std(final_returns)),
+        "final_n_episodes": len(final_returns),
+        "train_seconds": round(trained.learn_seconds - tracker.eval_seconds, 3),
+        "eval_seconds": round(tracker.eval_seconds, 3),
+        "wall_seconds": round(time.perf_counter() - wall_start, 3),
+        "curve": [[int(steps), round(mean, 3)] for steps, mean in tracker.curve],
+        "torch_threads": th.get_num_threads(),
+        "versions": package_versions(),
+        "machine": machine_line(),
+        "hostname": socket.gethostname(),
+        "pid": os.getpid(),
+        "git": job.git,
+        "command": job.command,
+        "finished_at": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+# --- execution --------------------------------------------------------------------------------------------------
+
+
+def _describe(record: dict[str, Any]) -> str:
+    solved = f"solved at {record['steps_to_solve']}" if record["solved"] else "not solved"
+    return (
+        f"{record['algo']} {record['env']} seed {record['seed']}: {solved}, final {record['final_score']:.1f} "
+        f"at {record['steps_trained']} steps, train {record['train_seconds']:.1f}s, wall {record['wall_seconds']:.1f}s"
+    )
+
+
+def _run_local(jobs: Sequence[Job], workers: int, on_result: Callable[[Job, dict[str, Any]], None]) -> int:
+    failures = 0
+    if workers == 0:  # in this process, one after the other (debugging, tests)
+        for job in jobs:
+            try:
+                on_result(job, run_job(job))
+            except Exception:
+                failures += 1
+                print(f"FAILED {job.algo} {job.env_id} seed {job.seed}:\n{traceback.format_exc()}", file=sys.stderr)
+        return failures
+    # One fresh spawned process per job: no state (threads, RNG, imports) leaks from one job to the next.
+    pool_kwargs: dict[str, Any] = {"max_tasks_per_child": 1} if sys.version_info >= (3, 11) else {}
+    with concurrent.futures.ProcessPoolExecutor(
+        max_workers=workers, mp_context=multiprocessing.get_context("spawn"), **pool_kwargs
+    ) as pool:
+        futures = {pool.submit(run_job, job): job for job in jobs}
+        for future in concurrent.futures.as_completed(futures):
+            job = futures[future]
+            try:
+                on_result(job, future.result())
+            except Exception as error:
+                failures += 1
+                print(f"FAILED {job.algo} {job.env_id} seed {job.seed}: {error!r}", file=sys.stderr)
+    return failures
+
+
+def _run_ray(jobs: Sequence[Job], address: str, workers: int, on_result: Callable[[Job, dict[str, Any]], None]) -> int:
+    try:
+        import ray
+    except ImportError as error:
+        raise SystemExit(
+            "--ray-address needs Ray, which is not installed: pip install 'sb3-nfq[distributed]' (or 'ray>=2.9')"
+        ) from error
+    started_here = not ray.is_initialized()
+    if started_here:
+        # Ship this checkout's code to the workers (the cluster's nodes need torch, SB3, gymnasium, ... installed).
+        runtime_env = {"py_modules": [str(REPO_ROOT / "benchmarks"), str(REPO_ROOT / "sb3_nfq")]}
+        if address == "local":  # a Ray instance on this machine, as many CPUs as local workers
+            ray.init(num_cpus=max(workers, 1), include_dashboard=False, runtime_env=runtime_env)
+        else:  # "auto" (a running cluster this machine belongs to) or "ray://head:10001"
+            ray.init(address=address, runtime_env=runtime_env)
+    failures = 0
+    try:
+        remote_run_job = ray.remote(num_cpus=1, max_retries=0)(run_job)
+        pending = {remote_run_job.remote(job): job for job in jobs}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            job = pending.pop(done[0])
+            try:
+                on_result(job, ray.get(done[0]))
+            except Exception as error:
+                failures += 1
+                print(f"FAILED {job.algo} {job.env_id} seed {job.seed}: {error!r}", file=sys.stderr)
+    finally:
+        if started_here:
+            ray.shutdown()
+    return failures
+
+
+def run_jobs(jobs: Sequence[Job], results: Path, workers: int, ray_address: str | None = None) -> tuple[int, int, int]:
+    """
+    Run the jobs not yet in ``results``, appending one line per finished job.
+
+    :param jobs: the jobs
+    :param results: the results file (JSON lines)
+    :param workers: local worker processes (0: run in this process); clamped to the number of cores
+    :param ray_address: run as Ray tasks on this cluster (``local``, ``auto`` or an address) instead
+    :return: (jobs run, jobs skipped as already done, jobs failed)
+    """
+    done = {result_key(record) for record in read_results(results)}
+    todo = [job for job in jobs if job.key not in done]
+    skipped = len(jobs) - len(todo)
+    cores = usable_cores()
+    if workers > cores:
+        print(f"warning: {workers} workers on {cores} cores would distort timings; using {cores}", file=sys.stderr)
+        workers = cores
+    print(f"{len(jobs)} jobs: {skipped} already in {results}, {len(todo)} to run")
+    finished = 0
+
+    def on_result(job: Job, record: dict[str, Any]) -> None:
+        nonlocal finished
+        if ray_address:
+            record["launcher"] = f"ray ({ray_address})"
+        else:
+            record["launcher"] = f"local pool ({workers} spawned workers)" if workers else "in-process"
+        append_result(results, record)
+        finished += 1
+        print(f"[{finished}/{len(todo)}] {_describe(record)}", flush=True)
+
+    if not todo:
+        return 0, skipped, 0
+    if ray_address:
+        failures = _run_ray(todo, ray_address, workers, on_result)
+        return finished, skipped, failures
+    failures = _run_local(todo, workers, on_result)
+    return finished, skipped, failures
+
+
+def parse_seeds(values: Iterable[str]) -> list[int]:
+    """
+    :param values: seeds and ranges, e.g. ``["0-4"]`` or ``["0", "3", "7-9"]``
+    :return: the seeds, in order, without duplicates
+    """
+    seeds: list[int] = []
+    for value in values:
+        for part in value.split(","):
+            if "-" in part.strip("-"):
+                low, high = part.split("-")
+                seeds.extend(range(int(low), int(high) + 1))
+            elif part:
+                seeds.append(int(part))
+    return list(dict.fromkeys(seeds))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Command-line entry point.
+
+    :param argv: arguments (default: ``sys.argv[1:]``)
+    :return: exit status (1 if a job failed)
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--algos", nargs="+", default=configs.algorithm_names(), choices=configs.algorithm_names())
+    parser.add_argument("--envs", nargs="+", default=list(configs.ENVS), choices=list(configs.ENVS))
+    parser.add_argument("--seeds", nargs="+", default=["0-4"], help="seeds or ranges, e.g. 0-4 or 0 1 2 (default 0-4)")
+    parser.add_argument("--budget", type=int, help="env-step budget for every job (default: per config and env)")
+    parser.add_argument("--eval-every", type=int, help="evaluation period in env steps (default: per env, 1024)")
+    parser.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=configs.N_EVAL_EPISODES,
+        help="greedy episodes per evaluation (default 100, the criterion; fewer only for smoke tests)",
+    )
+    parser.add_argument("--stop-at-solve", action="store_true", help="stop each job when solved (quick runs)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=min(2, usable_cores()),
+        help="local worker processes, one job each (default: min(2, cores); 0: run in this process)",
+    )
+    parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="JSON-lines results file")
+    parser.add_argument("--ray-address", help="run the jobs as Ray tasks: 'local', 'auto' or a cluster address")
+    parser.add_argument("--dry-run", action="store_true", help="list the jobs to run and exit")
+    args = parser.parse_args(argv)
+    if args.workers < 0:
+        parser.error("--workers must be >= 0")
+
+    command = shlex.join(["python", "-m", "benchmarks.run", *argv])
+    jobs = make_jobs(
+        args.algos,
+        args.envs,
+        parse_seeds(args.seeds),
+        budget=args.budget,
+        eval_every=args.eval_every,
+        n_eval_episodes=args.eval_episodes,
+        stop_at_solve=args.stop_at_solve,
+        command=command,
+    )
+    if args.dry_run:
+        done = {result_key(record) for record in read_results(args.results)}
+        for job in jobs:
+            state = "done" if job.key in done else "todo"
+            print(f"{state} {job.algo} {job.env_id} seed={job.seed} budget={job.budget} config={job.config_hash}")
+        return 0
+    print(f"machine: {machine_line()}; torch threads per job: 1")
+    _, _, failures = run_jobs(jobs, args.results, args.workers, args.ray_address)
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,235 @@
+"""
+Fast tests of the benchmark suite (benchmarks/): the plain-PyTorch reference NFQ, the runner (JSON lines,
+resumability, local pool, Ray), the report and the overhead script. Tiny budgets, real envs, no mocks.
+"""
+
+import json
+import os
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch as th
+from torch.nn import functional as F
+
+from benchmarks import configs, overhead, report, run
+from benchmarks.reference_nfq import ReferenceNFQ, fit_q_network, td_targets
+
+RESULT_FIELDS = {
+    "algo": str,
+    "env": str,
+    "seed": int,
+    "budget": int,
+    "config_hash": str,
+    "solved": bool,
+    "steps_trained": int,
+    "train_seconds": float,
+    "eval_seconds": float,
+    "wall_seconds": float,
+    "curve": list,
+    "final_score": float,
+    "final_n_episodes": int,
+    "torch_threads": int,
+    "versions": dict,
+    "machine": str,
+    "command": str,
+    "eval_every": int,
+    "threshold": float,
+}
+
+
+# --- reference NFQ ----------------------------------------------------------------------------------------------
+
+
+def test_reference_runs_rounds_and_fits() -> None:
+    agent = ReferenceNFQ("CartPole-v1", seed=0, transitions_per_round=256, fitting_iterations=5)
+    rounds: list[int] = []
+
+    def after_round(trained: ReferenceNFQ) -> bool:
+        rounds.append(trained.num_timesteps)
+        return True
+
+    agent.learn(300, callback=after_round)
+    assert rounds == [256, 512]  # whole rounds until the budget is reached
+    assert agent.n_rounds == 2 and agent.last_losses.shape == (5,)
+    assert th.isfinite(agent.last_losses).all()
+    greedy, _ = agent.predict(np.zeros((3, 4), dtype=np.float32))
+    assert greedy.shape == (3,) and set(greedy.tolist()) <= {0, 1}
+
+
+def test_reference_fitting_learns() -> None:
+    """With gamma = 0 fitting is plain regression on the rewards: 40 full-batch steps must reduce the loss."""
+    agent = ReferenceNFQ("CartPole-v1", seed=1, transitions_per_round=512, gamma=0.0)
+    batch = agent.collect_round()
+    losses = fit_q_network(agent.q_net, agent.optimizer, batch, gamma=0.0, iterations=40)
+    assert losses[-1] < 0.1 * losses[0]
+
+
+def test_reference_targets_are_constants() -> None:
+    agent = ReferenceNFQ("CartPole-v1", seed=2, transitions_per_round=128)
+    batch = agent.collect_round()
+    targets = td_targets(agent.q_net, batch, gamma=1.0)
+    assert not targets.requires_grad and targets.grad_fn is None
+
+    def gradient(loss: th.Tensor) -> th.Tensor:
+        agent.q_net.zero_grad()
+        loss.backward()
+        return th.cat([p.grad.flatten() for p in agent.q_net.parameters() if p.grad is not None])
+
+    q_taken = agent.q_net(batch.observations).gather(1, batch.actions)
+    with_constant_targets = gradient(F.mse_loss(q_taken, targets))
+    q_taken = agent.q_net(batch.observations).gather(1, batch.actions)
+    max_next = agent.q_net(batch.next_observations).max(dim=1, keepdim=True).values  # NOT detached: the bug
+    through_targets = gradient(F.mse_loss(q_taken, batch.rewards + (1 - batch.terminated) * max_next))
+    assert not th.allclose(with_constant_targets, through_targets)  # the check can tell the two apart
+
+
+def test_reference_truncation_bootstraps_and_termination_does_not() -> None:
+    # Random actions, episodes cut at 15 steps: both truncations and true terminations occur in 512 steps.
+    agent = ReferenceNFQ(
+        "CartPole-v1", seed=3, epsilon=1.0, transitions_per_round=512, env_kwargs={"max_episode_steps": 15}
+    )
+    batch = agent.collect_round()
+    next_is_next_obs = (batch.next_observations[:-1] == batch.observations[1:]).all(dim=1)
+    episode_ends = th.cat([~next_is_next_obs, th.tensor([False])])
+    terminated = batch.terminated.flatten() == 1
+    truncated = episode_ends & ~terminated
+    assert terminated.any() and truncated.any()
+
+    targets = td_targets(agent.q_net, batch, gamma=1.0).flatten()
+    with th.no_grad():
+        max_next_q = agent.q_net(batch.next_observations).max(dim=1).values
+    rewards = batch.rewards.flatten()
+    assert th.allclose(targets[terminated], rewards[terminated])  # bootstraps on 0
+    assert th.allclose(targets[truncated], rewards[truncated] + max_next_q[truncated])  # bootstraps on Q(s')
+    assert (max_next_q[truncated].abs() > 0).all()
+
+
+# --- configs ----------------------------------------------------------------------------------------------------
+
+
+def test_dqn_zoo_config_comes_from_rl_zoo3() -> None:
+    config = configs.resolve("dqn-zoo", "CartPole-v1")
+    assert config.kind == "dqn" and config.budget == 50_000  # the Zoo's n_timesteps
+    kwargs = run.sb3_kwargs({k: v for k, v in config.kwargs.items() if k != "policy"})
+    assert kwargs["policy_kwargs"] == {"net_arch": [256, 256]}
+    for env_id in configs.ENVS:
+        assert configs.resolve("dqn-zoo", env_id).budget > 0
+    assert run.parse_seeds(["0-2", "7", "1"]) == [0, 1, 2, 7]
+
+
+# --- runner -----------------------------------------------------------------------------------------------------
+
+RUNNER_ARGS = ["--envs", "CartPole-v1", "--seeds", "0-1", "--budget", "1024", "--workers", "0"]
+RUNNER_ALGOS = ["nfq-book", "reference-nfq", "dqn-zoo"]
+
+
+@pytest.fixture(scope="module")
+def results_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A results file written by the runner: 3 algorithms x CartPole x 2 seeds, 1024 steps each."""
+    th.set_num_threads(1)
+    path = tmp_path_factory.mktemp("bench") / "runs.jsonl"
+    assert run.main(["--algos", *RUNNER_ALGOS, *RUNNER_ARGS, "--results", str(path)]) == 0
+    return path
+
+
+def _lines(path: Path) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_runner_writes_one_valid_line_per_job(results_file: Path) -> None:
+    records = _lines(results_file)
+    assert sorted((r["algo"], r["seed"]) for r in records) == sorted((a, s) for a in RUNNER_ALGOS for s in (0, 1))
+    for record in records:
+        for name, kind in RESULT_FIELDS.items():
+            assert isinstance(record[name], kind), (name, record[name])
+        assert record["steps_to_solve"] is None or isinstance(record["steps_to_solve"], int)
+        assert record["torch_threads"] == 1 and record["final_n_episodes"] == 100
+        assert record["eval_every"] == 1024 and record["threshold"] == 475.0
+        assert set(record["versions"]) >= {"sb3_nfq", "stable_baselines3", "torch", "gymnasium", "python"}
+        assert "cores" in record["machine"]
+        assert record["command"].startswith("python -m benchmarks.run ")
+        assert 0 <= record["train_seconds"] <= record["wall_seconds"]
+        steps = [point[0] for point in record["curve"]]
+        assert steps[0] == 0 and steps[-1] == record["steps_trained"] >= 1024
+        assert all(isinstance(point[1], float) for point in record["curve"])
+    dqn = next(r for r in records if r["algo"] == "dqn-zoo")
+    assert dqn["config"]["policy_kwargs"] == "dict(net_arch=[256, 256])"
+    assert dqn["effective_hyperparams"]["net_arch"] == [256, 256]
+
+
+def test_runner_skips_jobs_already_done(results_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    before = results_file.read_text()
+    assert run.main(["--algos", *RUNNER_ALGOS, *RUNNER_ARGS, "--results", str(results_file)]) == 0
+    assert results_file.read_text() == before
+    assert "6 already in" in capsys.readouterr().out
+
+
+def test_runner_local_pool_spawns_a_process_per_job(tmp_path: Path) -> None:
+    path = tmp_path / "runs.jsonl"
+    args = ["--algos", "reference-nfq", "--envs", "CartPole-v1", "--seeds", "0", "--budget", "1024"]
+    assert run.main([*args, "--workers", "1", "--stop-at-solve", "--results", str(path)]) == 0
+    (record,) = _lines(path)
+    assert record["launcher"].startswith("local pool") and record["torch_threads"] == 1
+    assert record["pid"] != os.getpid()
+
+
+def test_runner_on_local_ray(tmp_path: Path) -> None:
+    ray = pytest.importorskip("ray")
+    path = tmp_path / "runs.jsonl"
+    args = ["--algos", "reference-nfq", "--envs", "CartPole-v1", "--seeds", "0", "--budget", "1024"]
+    assert run.main([*args, "--workers", "1", "--ray-address", "local", "--results", str(path)]) == 0
+    (record,) = _lines(path)
+    assert record["launcher"] == "ray (local)" and record["torch_threads"] == 1
+    assert not ray.is_initialized()  # the runner shut down the Ray instance it started
+
+
+# --- report -----------------------------------------------------------------------------------------------------
+
+
+def test_report_builds_readme_and_curves(results_file: Path, tmp_path: Path) -> None:
+    out_dir = tmp_path / "report"
+    assert report.main(["--results", str(results_file), "--out-dir", str(out_dir)]) == 0
+    text = (out_dir / "README.md").read_text()
+    records = _lines(results_file)
+    assert records[0]["command"] in text and records[0]["machine"] in text
+    assert "python -m benchmarks.report" in text
+    for algo in RUNNER_ALGOS:
+        assert f"| {algo} | 2 | 1,024 |" in text
+    assert "not enough data" in text  # 2 seeds are not enough to judge a target
+    png = (out_dir / "curves_CartPole-v1.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    width, height = struct.unpack(">II", png[16:24])
+    assert width > 100 and height > 100
+
+
+def test_report_judges_targets_from_runner_data(results_file: Path) -> None:
+    # Five seeds of the same runs under both names: the ratio of medians is exactly 1, so the ±25% target is met.
+    records = _lines(results_file)
+    nfq = [r for r in records if r["algo"] == "nfq-book"]
+    fake_seeds = [dict(r, seed=seed) for seed in range(5) for r in nfq[:1]]
+    both = fake_seeds + [dict(r, algo="reference-nfq") for r in fake_seeds]
+    cells = report.build_cells(both)
+    verdict, text = report.ratio_target(cells, "CartPole-v1", "nfq-book", "reference-nfq", 0.75, 1.25)
+    assert verdict == "not enough data" and "neither median solved" in text  # both medians censored
+    solved = [dict(r, steps_to_solve=1024 * (1 + r["seed"]), solved=True) for r in both]
+    verdict, text = report.ratio_target(
+        report.build_cells(solved), "CartPole-v1", "nfq-book", "reference-nfq", 0.75, 1.25
+    )
+    assert verdict == "met" and text.startswith("1.00")
+
+
+# --- overhead ---------------------------------------------------------------------------------------------------
+
+
+def test_overhead_script_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "overhead.json"
+    assert overhead.main(["--threads", "1", "--repeats", "1", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "threads: 1" in printed and "ratio NFQ / reference" in printed and "ratio NFQ / bare" in printed
+    numbers = json.loads(out.read_text())
+    assert numbers["threads"] == 1
+    assert numbers["round"]["ratio"] > 0 and numbers["fitting"]["ratio"] > 0
+    assert numbers["fitting"]["max_weight_difference_after_first_fit"] < 1e-4  # same data, same start: same fit

@@ -10,8 +10,10 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import (
     GymEnv,
@@ -364,6 +366,8 @@ class NFQ(OffPolicyAlgorithm):
         batch = self._stored_transitions()
         n_transitions = len(batch.rewards)
         self._n_rounds += 1
+        full_batch = batch_size is None or batch_size >= n_transitions
+        shared_states = self._states_and_successors(batch) if full_batch else None
 
         losses = []
         for iteration in range(gradient_steps):
@@ -371,12 +375,7 @@ class NFQ(OffPolicyAlgorithm):
             for _ in range(self.fit_epochs):
                 for indices in _minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
                     data = _take(batch, indices)
-                    # The TD target is a constant for the gradient step: computed without a graph.
-                    if fixed_targets is None:
-                        targets = self._td_targets(data)
-                    else:
-                        targets = fixed_targets if indices is None else fixed_targets[indices]
-                    q_values = th.gather(self.q_net(data.observations), dim=1, index=data.actions.long())
+                    q_values, targets = self._q_values_and_targets(data, indices, fixed_targets, shared_states)
                     loss = LOSSES[self.loss](q_values, targets)
 
                     loss_value = loss.item()
@@ -402,6 +401,61 @@ class NFQ(OffPolicyAlgorithm):
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
+
+    def _q_values_and_targets(
+        self,
+        data: ReplayBufferSamples,
+        indices: th.Tensor | None,
+        fixed_targets: th.Tensor | None,
+        shared_states: tuple[th.Tensor, th.Tensor] | None,
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """
+        :param data: the transitions of this gradient step
+        :param indices: their rows in the memory (``None``: all of it)
+        :param fixed_targets: the iteration's targets of the whole memory (``"fixed_per_iteration"``), else ``None``
+        :param shared_states: from :meth:`_states_and_successors`, to get both in one forward pass, else ``None``
+        :return: ``Q(s, a)`` (with its graph) and the TD targets (constants: no gradient flows through them)
+        """
+        if fixed_targets is not None:
+            targets = fixed_targets if indices is None else fixed_targets[indices]
+        elif shared_states is not None:
+            # Q(s', .) of most transitions is Q(s, .) of a later one: read it, detached, from the pass that
+            # computes Q(s, a); only the few other next states need a (gradient-free) pass of their own.
+            new_next_observations, next_rows = shared_states
+            q_values = self.q_net(data.observations)
+            with th.no_grad():
+                q_candidates = th.cat([q_values.detach(), self.q_net(new_next_observations)])
+                next_q_values = q_candidates[next_rows].max(dim=1).values.reshape(-1, 1)
+                targets = data.rewards + (1 - data.dones) * self.gamma * next_q_values
+            return th.gather(q_values, dim=1, index=data.actions.long()), targets
+        else:
+            targets = self._td_targets(data)
+        return th.gather(self.q_net(data.observations), dim=1, index=data.actions.long()), targets
+
+    def _states_and_successors(self, batch: ReplayBufferSamples) -> tuple[th.Tensor, th.Tensor] | None:
+        """
+        In a round, the next state of a transition is usually the state of the same env's next transition
+        (``n_envs`` rows later): only episode ends and the last steps bring new states. So the targets need a
+        forward pass over those few new states only, the rest of ``Q(s', .)`` being rows of ``Q(s, .)``:
+        the same numbers as a pass over every ``s'``, for about half the work.
+
+        :param batch: the whole memory
+        :return: ``(new_next_observations, next_rows)``: the ``s'`` not found among the ``s``, and for each
+            transition ``i`` the row of ``cat([Q(s, .), Q(new_next_observations, .)])`` holding ``Q(s'_i, .)``.
+            ``None`` for ``Dict`` observations.
+        """
+        observations, next_observations = batch.observations, batch.next_observations
+        if isinstance(observations, dict) or isinstance(next_observations, dict):
+            return None
+        n_transitions, offset = len(observations), self.replay_buffer.n_envs
+        is_next_state = th.zeros(n_transitions, dtype=th.bool, device=observations.device)
+        if n_transitions > offset:
+            successors = next_observations[:-offset] == observations[offset:]
+            is_next_state[:-offset] = successors.reshape(n_transitions - offset, -1).all(dim=1)
+        new_rows = th.nonzero(~is_next_state).flatten()
+        next_rows = th.arange(n_transitions, device=observations.device) + offset
+        next_rows[new_rows] = n_transitions + th.arange(len(new_rows), device=observations.device)
+        return next_observations[new_rows], next_rows
 
     def _td_targets(self, data: ReplayBufferSamples) -> th.Tensor:
         """
@@ -548,13 +602,51 @@ class NFQ(OffPolicyAlgorithm):
             n_obs = len(next(iter(observation.values()))) if vectorized else 1
         else:
             n_obs = len(observation) if vectorized else 1
-        assert isinstance(self.action_space, spaces.Discrete)
-        explore = np.random.rand(n_obs) < self.exploration_rate
-        actions = np.random.randint(int(self.action_space.n), size=n_obs)
+        explore, actions = self._coin_flips(n_obs)
         if not explore.all():  # the network is only needed where some observation acts greedily
             greedy_actions, _ = self.policy.predict(observation, state, episode_start, deterministic=True)
             actions = np.where(explore, actions, np.reshape(greedy_actions, n_obs))
         return (actions if vectorized else actions[0]), state
+
+    def _coin_flips(self, n_obs: int) -> tuple[np.ndarray, np.ndarray]:
+        """
+        :param n_obs: number of observations acting at once
+        :return: which of them explore (probability ``exploration_rate`` each) and a uniform random action for each
+        """
+        assert isinstance(self.action_space, spaces.Discrete)
+        explore = np.random.rand(n_obs) < self.exploration_rate
+        return explore, np.random.randint(int(self.action_space.n), size=n_obs)
+
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """
+        The behaviour policy while collecting: epsilon-greedy for the ``n_envs`` current observations, drawn
+        exactly as ``predict(deterministic=False)`` draws them. ``collect_rollouts`` has already put the policy
+        in eval mode, so vector observations go straight to the Q-network (SB3's ``policy.predict`` would set
+        the mode and convert the observation again at every step).
+
+        :param learning_starts: unused (NFQ has no warm-up)
+        :param action_noise: unused (discrete actions)
+        :param n_envs: number of envs
+        :return: the actions to take and to store (the same for discrete actions)
+        """
+        explore, actions = self._coin_flips(n_envs)
+        if not explore.all():
+            observation = self._last_obs
+            assert observation is not None
+            if isinstance(observation, np.ndarray) and self._vector_observations():
+                with th.no_grad():
+                    q_values = self.q_net(th.as_tensor(observation, device=self.device))
+                greedy_actions = q_values.argmax(dim=1).cpu().numpy()
+            else:
+                greedy_actions, _ = self.policy.predict(observation, deterministic=True)
+            actions = np.where(explore, actions, np.reshape(greedy_actions, n_envs))
+        return actions, actions
+
+    def _vector_observations(self) -> bool:
+        """:return: whether observations are plain vectors (a non-image ``Box``) that need no conversion"""
+        return isinstance(self.observation_space, spaces.Box) and not is_image_space(self.observation_space)
 
     @classmethod
     def load(

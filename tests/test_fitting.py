@@ -35,8 +35,44 @@ def test_each_round_fits_gradient_steps_times_on_exactly_its_own_transitions(n_e
             fitted_obs = fitting.grad_inputs[round_index * 5 + fitted_iteration].numpy()
             # every transition of this round exactly once, in order, and nothing from another round
             np.testing.assert_array_equal(fitted_obs, expected_obs)
-    # the targets are computed on the same full batch (next observations), without gradient
-    assert fitting.no_grad_batch_sizes.count(round_size) >= 2 * 5
+
+
+def test_shared_forward_pass_gives_the_textbook_update_on_a_real_round() -> None:
+    # Real CartPole round with several episode ends: NFQ reads most Q(s') from the Q(s) pass; the update
+    # must equal the textbook's, computed by hand with a separate target pass over every s'.
+    model = NFQ(
+        "MlpPolicy",
+        make_vec_env("CartPole-v1", n_envs=2, seed=0),
+        train_freq=200,
+        gradient_steps=1,
+        gamma=0.9,
+        learning_rate=0.1,
+        policy_kwargs={"optimizer_class": th.optim.SGD, "net_arch": [16]},
+        seed=0,
+    )
+    captured: dict[str, object] = {}
+
+    class BeforeFit(BaseCallback):
+        def _on_rollout_end(self) -> None:
+            captured["data"] = model._stored_transitions()
+            captured["params"] = [p.detach().clone() for p in model.q_net.parameters()]
+
+        def _on_step(self) -> bool:
+            return True
+
+    model.learn(200, callback=BeforeFit())
+    data = captured["data"]
+    assert isinstance(data, ReplayBufferSamples) and data.dones.sum() >= 2
+    q_net = model.policy.make_q_net()
+    with th.no_grad():
+        for param, value in zip(q_net.parameters(), captured["params"], strict=True):  # type: ignore[call-overload]
+            param.copy_(value)
+        target = data.rewards + (1 - data.dones) * 0.9 * q_net(data.next_observations).max(dim=1).values.reshape(-1, 1)
+    loss = th.nn.functional.mse_loss(th.gather(q_net(data.observations), 1, data.actions.long()), target)
+    loss.backward()
+    for got, before, hand in zip(model.q_net.parameters(), captured["params"], q_net.parameters(), strict=True):  # type: ignore[call-overload]
+        assert hand.grad is not None
+        th.testing.assert_close(got.detach(), before - 0.1 * hand.grad, rtol=1e-5, atol=1e-6)
 
 
 def test_round_is_discarded_after_fitting() -> None:

@@ -6,7 +6,7 @@ This is the 2005 paper's experiment in miniature (it learned pole balancing from
 Needs ``pip install "minari[create,hdf5]"`` (DataCollector uses JAX). Nothing is downloaded: the dataset
 is written under ``--minari-dir``.
 
-    python examples/offline_minari.py [--episodes 200] [--iterations 1000] [--minari-dir data/minari]
+    python examples/offline_minari.py [--episodes 200] [--iterations 25] [--minari-dir data/minari]
 """
 
 import argparse
@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> float:
     """
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=200)
-    parser.add_argument("--iterations", type=int, default=100, help="fitted iterations")
+    parser.add_argument("--iterations", type=int, default=25, help="fitted iterations")
     parser.add_argument("--minari-dir", type=Path, default=Path("data/minari"))
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)

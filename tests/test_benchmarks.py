@@ -120,6 +120,19 @@ def test_dqn_zoo_config_comes_from_rl_zoo3() -> None:
     assert run.parse_seeds(["0-2", "7", "1"]) == [0, 1, 2, 7]
 
 
+def test_nfq_configs_build_nfq_models_and_flag_placeholders() -> None:
+    from sb3_nfq import NFQ
+
+    tuned = configs.resolve("nfq-tuned", "CartPole-v1")
+    assert tuned.kind == "nfq" and not tuned.placeholder and tuned.budget == 50_000
+    model = NFQ("MlpPolicy", "CartPole-v1", **run.sb3_kwargs(tuned.kwargs))
+    assert isinstance(model.policy.optimizer, th.optim.Adam)
+    assert model.memory == "growing" and model.gradient_steps == 8
+    assert configs.resolve("nfq-tuned", "Acrobot-v1").placeholder
+    assert configs.resolve("nfq-shared", "CartPole-v1").placeholder
+    assert not configs.resolve("nfq-book", "LunarLander-v3").placeholder
+
+
 # --- runner -----------------------------------------------------------------------------------------------------
 
 RUNNER_ARGS = ["--envs", "CartPole-v1", "--seeds", "0-1", "--budget", "1024", "--workers", "0"]

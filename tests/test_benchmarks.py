@@ -15,7 +15,7 @@ import torch as th
 from torch.nn import functional as F
 
 from benchmarks import configs, overhead, report, run
-from benchmarks.reference_nfq import ReferenceNFQ, fit_q_network, td_targets
+from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
 
 RESULT_FIELDS = {
     "algo": str,
@@ -105,6 +105,57 @@ def test_reference_truncation_bootstraps_and_termination_does_not() -> None:
     assert th.allclose(targets[terminated], rewards[terminated])  # bootstraps on 0
     assert th.allclose(targets[truncated], rewards[truncated] + max_next_q[truncated])  # bootstraps on Q(s')
     assert (max_next_q[truncated].abs() > 0).all()
+
+
+@pytest.mark.parametrize("episode_length", [500, 15])  # 15: truncations and terminations inside the round
+def test_nfq_fit_equals_the_reference_fit_on_the_same_round(episode_length: int) -> None:
+    """
+    Fidelity: from the same weights and the same collected round, NFQ's textbook fit (40 full-batch iterations,
+    RMSprop 5e-4, targets recomputed before each step, gamma = 1) ends at the same weights as the reference's.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_nfq import NFQ
+
+    class SnapshotBeforeFit(BaseCallback):
+        def _on_step(self) -> bool:
+            return True
+
+        def _on_rollout_end(self) -> None:
+            model = self.model
+            assert isinstance(model, NFQ)
+            self.batch = model._stored_transitions()
+            self.weights = [p.detach().clone() for p in model.q_net.parameters()]
+
+    env = make_vec_env("CartPole-v1", n_envs=1, seed=4, env_kwargs={"max_episode_steps": episode_length})
+    model = NFQ("MlpPolicy", env, seed=4)
+    snapshot = SnapshotBeforeFit()
+    model.learn(1024, callback=snapshot)  # one round: collect, then fit
+    batch = snapshot.batch
+
+    reference_net = make_q_network(4, 2)
+    with th.no_grad():
+        for reference_param, weights in zip(reference_net.parameters(), snapshot.weights, strict=True):
+            reference_param.copy_(weights)
+    reference_batch = Transitions(
+        observations=batch.observations,
+        actions=batch.actions.long(),
+        rewards=batch.rewards,
+        next_observations=batch.next_observations,
+        terminated=batch.dones,
+    )
+    if episode_length == 15:
+        assert 0 < int(batch.dones.sum()) < int((batch.next_observations[:-1] != batch.observations[1:]).any(1).sum())
+    optimizer = th.optim.RMSprop(reference_net.parameters(), lr=5e-4)
+    fit_q_network(reference_net, optimizer, reference_batch, gamma=1.0, iterations=40)
+
+    for nfq_param, reference_param in zip(model.q_net.parameters(), reference_net.parameters(), strict=True):
+        assert th.allclose(nfq_param, reference_param, rtol=1e-4, atol=1e-5)
+    moved = [
+        not th.equal(after, before) for after, before in zip(model.q_net.parameters(), snapshot.weights, strict=True)
+    ]
+    assert all(moved)  # the comparison is not between two untouched networks
 
 
 # --- configs ----------------------------------------------------------------------------------------------------

@@ -142,6 +142,17 @@ class Cell:
         """:return: final greedy score of each run"""
         return np.array([run["final_score"] for run in self.runs], dtype=float)
 
+    def protocol(self) -> str:
+        """:return: the evaluation period, and whether the runs stopped at the solve (final score at the solve)"""
+        periods = ", ".join(f"{period:,}" for period in sorted({int(run["eval_every"]) for run in self.runs}))
+        stopped = any(run.get("stop_at_solve") for run in self.runs)
+        return f"{periods} steps" + (" (stopped at solve)" if stopped else "")
+
+    @property
+    def eval_every(self) -> int:
+        """:return: the evaluation period of the runs (the largest, should they differ)"""
+        return max(int(run["eval_every"]) for run in self.runs)
+
     def train_seconds(self) -> np.ndarray:
         """:return: training seconds (evaluation excluded) of each run"""
         return np.array([run["train_seconds"] for run in self.runs], dtype=float)
@@ -175,9 +186,18 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     return result
 
 
-def primary_cell(cells_by_env: dict[str, list[Cell]], env: str, algo: str) -> Cell | None:
-    """:return: the cell of ``algo`` on ``env`` with the most seeds, if any"""
-    cells = [cell for cell in cells_by_env.get(env, []) if cell.algo == algo]
+def primary_cell(
+    cells_by_env: dict[str, list[Cell]], env: str, algo: str, eval_every: int | None = None
+) -> Cell | None:
+    """
+    :param eval_every: only cells evaluated with this period (default: any)
+    :return: the cell of ``algo`` on ``env`` with the most seeds, if any
+    """
+    cells = [
+        cell
+        for cell in cells_by_env.get(env, [])
+        if cell.algo == algo and (eval_every is None or cell.eval_every == eval_every)
+    ]
     return max(cells, key=lambda cell: cell.n) if cells else None
 
 
@@ -191,9 +211,9 @@ def _steps(value: float, lower_bound: bool) -> str:
 def table_rows(cells: Sequence[Cell]) -> list[str]:
     """:return: the markdown table of one env"""
     rows = [
-        "| algorithm | seeds | budget | success | steps to solve: median [IQR] | IQM [95% CI] | "
-        "final score at budget: mean ± sd (≥ threshold) | train s: median [IQR] |",
-        "|---|---|---|---|---|---|---|---|",
+        "| algorithm | seeds | budget | evaluated every | success | steps to solve: median [IQR] | IQM [95% CI] | "
+        "final score: mean ± sd (≥ threshold) | train s: median [IQR] |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for cell in cells:
         median, median_bound = cell.steps_quantile(50)
@@ -207,7 +227,7 @@ def table_rows(cells: Sequence[Cell]) -> list[str]:
         seconds = cell.train_seconds()
         s1, s2, s3 = np.percentile(seconds, [25, 50, 75])
         rows.append(
-            f"| {cell.label} | {cell.n} | {cell.budget:,} | {cell.success_rate():.0%} "
+            f"| {cell.label} | {cell.n} | {cell.budget:,} | {cell.protocol()} | {cell.success_rate():.0%} "
             f"| {_steps(median, median_bound)} [{_steps(q1, q1_bound)}, {_steps(q3, q3_bound)}] "
             f"| {_steps(iqm, iqm_bound)} [{low:,.0f}, {high:,.0f}] "
             f"| {scores.mean():.1f} ± {scores.std():.1f} ({int((scores >= threshold).sum())}/{cell.n}) "
@@ -225,16 +245,34 @@ def _median_interval(cell: Cell) -> tuple[float, float]:
     return value, math.inf if bound else value
 
 
+def common_eval_periods(cells_by_env: dict[str, list[Cell]], env: str, algos: Sequence[str]) -> list[int | None]:
+    """
+    :return: the evaluation periods at which every one of ``algos`` has runs on ``env`` (steps to solve are only
+        comparable at the same period: a finer grid catches earlier, possibly transient, solves); ``[None]`` if none
+    """
+    periods = [{cell.eval_every for cell in cells_by_env.get(env, []) if cell.algo == algo} for algo in algos]
+    common = sorted(set.intersection(*periods)) if periods else []
+    return [*common] if common else [None]
+
+
 def ratio_target(
-    cells_by_env: dict[str, list[Cell]], env: str, numerator: str, denominator: str, low: float, high: float
+    cells_by_env: dict[str, list[Cell]],
+    env: str,
+    numerator: str,
+    denominator: str,
+    low: float,
+    high: float,
+    eval_every: int | None = None,
 ) -> tuple[str, str]:
     """
     Judge ``median steps(numerator) / median steps(denominator)`` against ``[low, high]``. Censored medians make the
     ratio an interval; the target is met/not met only when the whole interval is inside/outside the range.
 
+    :param eval_every: compare the cells evaluated with this period (default: the cells with the most seeds)
     :return: (verdict, the ratio as text)
     """
-    num, den = primary_cell(cells_by_env, env, numerator), primary_cell(cells_by_env, env, denominator)
+    num = primary_cell(cells_by_env, env, numerator, eval_every)
+    den = primary_cell(cells_by_env, env, denominator, eval_every)
     if num is None or den is None or num.n < MIN_SEEDS or den.n < MIN_SEEDS:
         have = f"{numerator}: {num.n if num else 0} seeds, {denominator}: {den.n if den else 0} seeds"
         return "not enough data", f"needs {MIN_SEEDS} seeds each ({have})"
@@ -277,9 +315,11 @@ def shared_target(cells_by_env: dict[str, list[Cell]]) -> tuple[str, str]:
     return "not enough data", text
 
 
-def final_score_target(cells_by_env: dict[str, list[Cell]], env: str, algo: str) -> tuple[str, str]:
+def final_score_target(
+    cells_by_env: dict[str, list[Cell]], env: str, algo: str, eval_every: int | None = None
+) -> tuple[str, str]:
     """:return: (verdict, text) for "final score >= threshold in >= 4/5 seeds" """
-    cell = primary_cell(cells_by_env, env, algo)
+    cell = primary_cell(cells_by_env, env, algo, eval_every)
     if cell is None or cell.n < MIN_SEEDS:
         return "not enough data", f"needs {MIN_SEEDS} seeds ({cell.n if cell else 0})"
     scores = cell.final_scores()
@@ -289,34 +329,55 @@ def final_score_target(cells_by_env: dict[str, list[Cell]], env: str, algo: str)
     return ("met" if passed / cell.n >= SOLVE_FRACTION else "not met"), text
 
 
+def _period_note(eval_every: int | None) -> str:
+    return "" if eval_every is None else f" (runs evaluated every {eval_every:,} steps)"
+
+
 def target_lines(cells_by_env: dict[str, list[Cell]]) -> list[str]:
     """:return: the markdown lines of the targets section"""
     cartpole = "CartPole-v1"
-    targets = [
-        (
-            "nfq-book / reference-nfq median steps to solve on CartPole-v1 within ±25% (0.75 to 1.25)",
-            ratio_target(cells_by_env, cartpole, "nfq-book", "reference-nfq", 0.75, 1.25),
-            ["nfq-book", "reference-nfq"],
-        ),
-        (
-            "nfq-tuned / dqn-zoo median steps to solve on CartPole-v1 ≤ 0.75",
-            ratio_target(cells_by_env, cartpole, "nfq-tuned", "dqn-zoo", 0.0, 0.75),
-            ["nfq-tuned"],
-        ),
+    targets: list[tuple[str, tuple[str, str], list[str], list[str]]] = []
+    pair = ["nfq-book", "reference-nfq"]
+    for period in common_eval_periods(cells_by_env, cartpole, pair):
+        targets.append(
+            (
+                "nfq-book / reference-nfq median steps to solve on CartPole-v1 within ±25% (0.75 to 1.25)"
+                + _period_note(period),
+                ratio_target(cells_by_env, cartpole, "nfq-book", "reference-nfq", 0.75, 1.25, period),
+                pair,
+                [cartpole],
+            )
+        )
+    pair = ["nfq-tuned", "dqn-zoo"]
+    for period in common_eval_periods(cells_by_env, cartpole, pair):
+        targets.append(
+            (
+                "nfq-tuned / dqn-zoo median steps to solve on CartPole-v1 ≤ 0.75" + _period_note(period),
+                ratio_target(cells_by_env, cartpole, "nfq-tuned", "dqn-zoo", 0.0, 0.75, period),
+                ["nfq-tuned"],
+                [cartpole],
+            )
+        )
+    targets.append(
         (
             f"nfq-shared (one config) solves ≥ {SHARED_ENVS_TARGET} of the 4 envs in ≥ 4/5 seeds",
             shared_target(cells_by_env),
             ["nfq-shared"],
-        ),
-        (
-            "nfq-tuned final score at budget ≥ 475 on CartPole-v1 in ≥ 4/5 seeds",
-            final_score_target(cells_by_env, cartpole, "nfq-tuned"),
-            ["nfq-tuned"],
-        ),
-    ]
+            list(configs.ENVS),
+        )
+    )
+    for period in common_eval_periods(cells_by_env, cartpole, ["nfq-tuned"]):
+        targets.append(
+            (
+                "nfq-tuned final score at budget ≥ 475 on CartPole-v1 in ≥ 4/5 seeds" + _period_note(period),
+                final_score_target(cells_by_env, cartpole, "nfq-tuned", period),
+                ["nfq-tuned"],
+                [cartpole],
+            )
+        )
     lines = ["| target | verdict | measured |", "|---|---|---|"]
-    for name, (verdict, text), algos in targets:
-        placeholder = any(cell.placeholder for env in cells_by_env for cell in cells_by_env[env] if cell.algo in algos)
+    for name, (verdict, text), algos, envs in targets:
+        placeholder = any(cell.placeholder for env in envs for cell in cells_by_env.get(env, []) if cell.algo in algos)
         note = " (placeholder config)" if placeholder else ""
         lines.append(f"| {name} | **{verdict}**{note} | {text} |")
     return lines
@@ -429,7 +490,9 @@ def build_report(records: Sequence[dict[str, Any]], out_dir: Path, results_path:
         "Criterion (every algorithm): after each NFQ/reference round, or for DQN at the first rollout start at or "
         "after each multiple of `eval_every` env steps, the greedy policy plays 100 episodes on separate envs; a run "
         "is solved at the first evaluation whose mean return reaches the threshold. Training goes on to the budget, "
-        "then 100 new greedy episodes give the final score. Training seconds exclude evaluation time.",
+        "then 100 new greedy episodes give the final score; runs marked (stopped at solve) ran with "
+        "`--stop-at-solve`: their training stopped at the solve and their final score is taken there. Training "
+        "seconds exclude evaluation time.",
         "",
         f"Steps to solve: unsolved runs count as the steps they trained (censored), so a value marked ≥ is a lower "
         f"bound. IQM and its 95% CI: {ci_method()}. Rows marked * use a placeholder config (the book's settings until "

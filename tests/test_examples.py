@@ -60,3 +60,17 @@ def test_offline_minari_example_records_a_local_dataset_and_fits_it(tmp_path: Pa
     )
     assert mean_length >= 1
     assert any((tmp_path / "minari").rglob("*.hdf5"))
+
+
+def test_growing_memory_example_keeps_every_transition(capsys: pytest.CaptureFixture[str]) -> None:
+    final_mean = _main("growing_memory_cartpole.py")(["--total-timesteps", "2048"])
+    assert final_mean > 0
+    assert "Memory holds 2048 transitions after 2048 steps. 2 evaluations;" in capsys.readouterr().out
+
+
+def test_growing_memory_example_uses_the_benchmarked_config() -> None:
+    from benchmarks import configs, run
+
+    example_config = runpy.run_path(str(EXAMPLES / "growing_memory_cartpole.py"))["GROWING_MEMORY_NFQ"]
+    benchmarked = run.sb3_kwargs(configs.resolve("nfq-tuned", "CartPole-v1").kwargs)
+    assert example_config == benchmarked

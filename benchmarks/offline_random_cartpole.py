@@ -42,15 +42,15 @@ OFFLINE_CONFIG: dict[str, Any] = {
 OPTIMIZERS = {"Adam": th.optim.Adam, "RMSprop": th.optim.RMSprop, "Rprop": th.optim.Rprop}
 
 
-def collect_random_episodes(n_episodes: int, seed: int) -> Any:
+def random_cartpole_arrays(n_episodes: int, seed: int, max_episode_steps: int = 500) -> dict[str, np.ndarray]:
     """
-    :param n_episodes: number of episodes of a uniformly random policy
-    :param seed: seed of the resets and of the actions
-    :return: a ``TransitionDataset`` with CartPole-v1's own spaces
+    :param n_episodes: number of episodes of a uniformly random policy on CartPole-v1
+    :param seed: seed of the actions; episode ``i`` starts from ``reset(seed=seed * 100_000 + i)``
+    :param max_episode_steps: the time limit (episodes cut there are truncated, not terminated)
+    :return: the transitions in collection order, keys ``obs``, ``act``, ``rew``, ``next``, ``term``, ``trunc``,
+        with the episode ends as gymnasium reports them
     """
-    from sb3_nfq import TransitionDataset
-
-    env = gym.make("CartPole-v1")
+    env = gym.make("CartPole-v1", max_episode_steps=max_episode_steps)
     rng = np.random.default_rng(seed)
     rows: dict[str, list[Any]] = {key: [] for key in ("obs", "act", "rew", "next", "term", "trunc")}
     for episode in range(n_episodes):
@@ -62,15 +62,27 @@ def collect_random_episodes(n_episodes: int, seed: int) -> Any:
             for key, value in zip(rows, (obs, action, reward, next_obs, terminated, truncated), strict=True):
                 rows[key].append(value)
             obs, done = next_obs, terminated or truncated
-    observation_space = env.observation_space
+    return {key: np.array(values) for key, values in rows.items()}
+
+
+def collect_random_episodes(n_episodes: int, seed: int) -> Any:
+    """
+    :param n_episodes: number of episodes of a uniformly random policy
+    :param seed: seed of the resets and of the actions
+    :return: a ``TransitionDataset`` with CartPole-v1's own spaces
+    """
+    from sb3_nfq import TransitionDataset
+
+    arrays = random_cartpole_arrays(n_episodes, seed)
+    observation_space = gym.make("CartPole-v1").observation_space
     assert isinstance(observation_space, spaces.Box)
     return TransitionDataset.from_arrays(
-        np.array(rows["obs"]),
-        np.array(rows["act"]),
-        np.array(rows["rew"], dtype=np.float32),
-        np.array(rows["next"]),
-        np.array(rows["term"]),
-        np.array(rows["trunc"]),
+        arrays["obs"],
+        arrays["act"],
+        arrays["rew"].astype(np.float32),
+        arrays["next"],
+        arrays["term"],
+        arrays["trunc"],
         action_space=spaces.Discrete(2),
         observation_space=observation_space,
     )

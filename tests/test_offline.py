@@ -10,25 +10,9 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 
+from benchmarks.offline_random_cartpole import random_cartpole_arrays
 from sb3_nfq import NFQ, TransitionDataset
 from tests.conftest import record_fitting
-
-
-def random_cartpole_arrays(n_episodes: int, seed: int, max_episode_steps: int = 500) -> dict[str, np.ndarray]:
-    """Transitions of a uniformly random policy on CartPole-v1, with the episode ends as gymnasium reports them."""
-    env = gym.make("CartPole-v1", max_episode_steps=max_episode_steps)
-    rng = np.random.default_rng(seed)
-    rows: dict[str, list[Any]] = {key: [] for key in ("obs", "act", "rew", "next", "term", "trunc")}
-    for episode in range(n_episodes):
-        obs, _ = env.reset(seed=seed * 1000 + episode)
-        done = False
-        while not done:
-            action = int(rng.integers(2))
-            next_obs, reward, terminated, truncated, _ = env.step(action)
-            for key, value in zip(rows, (obs, action, reward, next_obs, terminated, truncated), strict=True):
-                rows[key].append(value)
-            obs, done = next_obs, terminated or truncated
-    return {key: np.array(values) for key, values in rows.items()}
 
 
 def cartpole_observation_space() -> spaces.Box:

@@ -138,6 +138,10 @@ class Cell:
         """:return: fraction of runs that solved"""
         return float(np.mean([run["steps_to_solve"] is not None for run in self.runs]))
 
+    def n_diverged(self) -> int:
+        """:return: how many runs stopped on a diverged (non-finite) loss"""
+        return sum(bool(run.get("diverged")) for run in self.runs)
+
     def final_scores(self) -> np.ndarray:
         """:return: final greedy score of each run"""
         return np.array([run["final_score"] for run in self.runs], dtype=float)
@@ -239,8 +243,9 @@ def table_rows(cells: Sequence[Cell]) -> list[str]:
         threshold = cell.runs[0]["threshold"]
         seconds = cell.train_seconds()
         s1, s2, s3 = np.percentile(seconds, [25, 50, 75])
+        diverged = f" ({cell.n_diverged()} diverged)" if cell.n_diverged() else ""
         rows.append(
-            f"| {cell.label} | {cell.n} | {cell.budget:,} | {cell.protocol()} | {cell.success_rate():.0%} "
+            f"| {cell.label} | {cell.n} | {cell.budget:,} | {cell.protocol()} | {cell.success_rate():.0%}{diverged} "
             f"| {_steps(median, median_bound)} [{_steps(q1, q1_bound)}, {_steps(q3, q3_bound)}] "
             f"| {_steps(iqm, iqm_bound)} [{low:,.0f}, {high:,.0f}] "
             f"| {scores.mean():.1f} ± {scores.std():.1f} ({int((scores >= threshold).sum())}/{cell.n}) "
@@ -504,8 +509,9 @@ def build_report(records: Sequence[dict[str, Any]], out_dir: Path, results_path:
         "after each multiple of `eval_every` env steps, the greedy policy plays 100 episodes on separate envs; a run "
         "is solved at the first evaluation whose mean return reaches the threshold. Training goes on to the budget, "
         "then 100 new greedy episodes give the final score; runs marked (stopped at solve) ran with "
-        "`--stop-at-solve`: their training stopped at the solve and their final score is taken there. Training "
-        "seconds exclude evaluation time.",
+        "`--stop-at-solve`: their training stopped at the solve and their final score is taken there. A run whose "
+        "loss became non-finite stops there (NFQ raises `NFQDivergenceError`); it counts as unsolved unless it had "
+        "solved before, and the success column says how many diverged. Training seconds exclude evaluation time.",
         "",
         f"Steps to solve: unsolved runs count as the steps they trained (censored), so a value marked ≥ is a lower "
         f"bound. IQM and its 95% CI: {ci_method()}. Rows marked * use a placeholder config (the book's settings until "

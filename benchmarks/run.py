@@ -383,12 +383,16 @@ def _round_end_callback(tracker: SolveTracker, act: Actor) -> Any:
 
 @dataclass
 class Trained:
-    """What a trainer hands back: env steps trained, greedy policy, seconds in learn(), effective settings."""
+    """
+    What a trainer hands back: env steps trained, greedy policy, seconds in learn(), effective settings, and the
+    divergence error if training stopped on a non-finite loss (then ``steps`` is where it stopped).
+    """
 
     steps: int
     act: Actor
     learn_seconds: float
     effective: dict[str, Any]
+    diverged: str | None = None
 
 
 def _linear_schedule(initial: float) -> Callable[[float], float]:
@@ -438,7 +442,7 @@ def _train_sb3(job: Job, tracker: SolveTracker) -> Trained:
     from stable_baselines3 import DQN
     from stable_baselines3.common.env_util import make_vec_env
 
-    from sb3_nfq import NFQ
+    from sb3_nfq import NFQ, NFQDivergenceError
 
     kwargs = dict(job.kwargs)
     n_envs = int(kwargs.pop("n_envs", 1))
@@ -451,7 +455,11 @@ def _train_sb3(job: Job, tracker: SolveTracker) -> Trained:
         return model.predict(observations, deterministic=True)[0]
 
     start = time.perf_counter()
-    model.learn(job.budget, callback=_round_end_callback(tracker, act))
+    diverged = None
+    try:
+        model.learn(job.budget, callback=_round_end_callback(tracker, act))
+    except NFQDivergenceError as error:  # a result like any other: recorded, not retried
+        diverged = str(error)
     learn_seconds = time.perf_counter() - start
 
     names = [
@@ -475,7 +483,7 @@ def _train_sb3(job: Job, tracker: SolveTracker) -> Trained:
     effective["net_arch"] = _jsonable(getattr(model.policy, "net_arch", None))
     effective["optimizer"] = type(model.policy.optimizer).__name__
     effective["q_net"] = str(model.q_net.q_net).replace("\n", "")
-    return Trained(model.num_timesteps, act, learn_seconds, effective)
+    return Trained(model.num_timesteps, act, learn_seconds, effective, diverged)
 
 
 def _train_reference(job: Job, tracker: SolveTracker) -> Trained:
@@ -535,6 +543,7 @@ def run_job(job: Job) -> dict[str, Any]:
         "steps_to_solve": tracker.steps_to_solve,
         "steps_trained": trained.steps,
         "stopped_at_solve": tracker.stopped,
+        "diverged": trained.diverged,
         "final_score": float(np.mean(final_returns)),
         "final_score_std": float(np.std(final_returns)),
         "final_n_episodes": len(final_returns),
@@ -558,6 +567,8 @@ def run_job(job: Job) -> dict[str, Any]:
 
 def _describe(record: dict[str, Any]) -> str:
     solved = f"solved at {record['steps_to_solve']}" if record["solved"] else "not solved"
+    if record.get("diverged"):
+        solved += ", then the loss diverged" if record["solved"] else ", the loss diverged"
     return (
         f"{record['algo']} {record['env']} seed {record['seed']}: {solved}, final {record['final_score']:.1f} "
         f"at {record['steps_trained']} steps, train {record['train_seconds']:.1f}s, wall {record['wall_seconds']:.1f}s"

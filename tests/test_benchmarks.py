@@ -231,6 +231,25 @@ def test_runner_skips_jobs_already_done(results_file: Path, capsys: pytest.Captu
     assert "6 already in" in capsys.readouterr().out
 
 
+def test_a_diverged_nfq_run_is_recorded_as_unsolved_with_the_error() -> None:
+    th.set_num_threads(1)
+    job = run.Job(
+        algo="nfq-lr-far-too-high",
+        kind="nfq",
+        env_id="CartPole-v1",
+        seed=0,
+        budget=4096,
+        kwargs={"learning_rate": 1e30},  # the first RMSprop step sends the weights to ~1e30: the loss overflows
+        threshold=475.0,
+        eval_every=1024,
+        n_eval_episodes=2,
+    )
+    record = run.run_job(job)
+    assert "NFQ loss became" in record["diverged"]
+    assert not record["solved"] and record["steps_trained"] < job.budget
+    json.dumps(record)  # still one valid JSON line
+
+
 def test_runner_local_pool_spawns_a_process_per_job(tmp_path: Path) -> None:
     path = tmp_path / "runs.jsonl"
     args = ["--algos", "reference-nfq", "--envs", "CartPole-v1", "--seeds", "0", "--budget", "1024"]

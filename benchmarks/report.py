@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks import configs
-from benchmarks.run import DEFAULT_RESULTS, read_results
+from benchmarks.run import DEFAULT_RESULTS, REPO_ROOT, read_results
 
 BOOTSTRAP_REPS = 2000
 #: A config "solves" an env when at least this fraction of its seeds solved it (4/5).
@@ -273,6 +273,21 @@ def common_eval_periods(cells_by_env: dict[str, list[Cell]], env: str, algos: Se
     return [*common] if common else [None]
 
 
+def median_ratio_ci(num: Cell, den: Cell, seed: int = 0, n_resamples: int = 10_000) -> tuple[float, float]:
+    """
+    Percentile bootstrap of ``median steps(num) / median steps(den)``: the runs of each cell are resampled with
+    replacement, independently (censored runs count as the steps they trained).
+
+    :return: the 95% confidence interval of the ratio
+    """
+    rng = np.random.default_rng(seed)
+    num_steps, den_steps = num.steps()[0], den.steps()[0]
+    num_medians = np.median(rng.choice(num_steps, (n_resamples, len(num_steps))), axis=1)
+    den_medians = np.median(rng.choice(den_steps, (n_resamples, len(den_steps))), axis=1)
+    low, high = np.percentile(num_medians / den_medians, [2.5, 97.5])
+    return float(low), float(high)
+
+
 def ratio_target(
     cells_by_env: dict[str, list[Cell]],
     env: str,
@@ -299,7 +314,11 @@ def ratio_target(
     ratio_low = num_low / den_high if den_high < math.inf else 0.0
     ratio_high = num_high / den_low
     if ratio_low == ratio_high:
-        text = f"{ratio_low:.2f} ({num_low:,.0f} / {den_low:,.0f})"
+        ci_low, ci_high = median_ratio_ci(num, den)
+        text = (
+            f"{ratio_low:.2f} ({num_low:,.0f} / {den_low:,.0f}; 95% bootstrap CI of the ratio "
+            f"{ci_low:.2f}-{ci_high:.2f})"
+        )
     elif ratio_high == math.inf and ratio_low > 0:
         text = f"≥ {ratio_low:.2f} (median of {numerator} did not solve)"
     elif ratio_low == 0 and ratio_high < math.inf:
@@ -558,7 +577,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     out_dir = args.out_dir or args.results.parent
     command = shlex.join(["python", "-m", "benchmarks.report", *argv])
-    print(build_report(records, out_dir, args.results, command))
+    results_path = args.results.resolve()
+    shown_path = results_path.relative_to(REPO_ROOT) if results_path.is_relative_to(REPO_ROOT) else results_path
+    print(build_report(records, out_dir, shown_path, command))
     print(f"\nwrote {out_dir / 'README.md'} and {len(build_cells(records))} PNG(s)")
     return 0
 

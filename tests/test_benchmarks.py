@@ -180,7 +180,12 @@ def test_nfq_configs_build_nfq_models_and_flag_placeholders() -> None:
     assert isinstance(model.policy.optimizer, th.optim.Adam)
     assert model.memory == "growing" and model.gradient_steps == 8
     assert configs.resolve("nfq-tuned", "Acrobot-v1").placeholder
-    assert configs.resolve("nfq-shared", "CartPole-v1").placeholder
+    shared = [configs.resolve("nfq-shared", env_id) for env_id in configs.ENVS]
+    assert all(not config.placeholder for config in shared)
+    assert all(config.kwargs == shared[0].kwargs for config in shared), "one config for every env"
+    assert [config.budget for config in shared] == [
+        configs.resolve("dqn-zoo", env_id).budget for env_id in configs.ENVS
+    ]
     assert not configs.resolve("nfq-book", "LunarLander-v3").placeholder
 
 

@@ -8,7 +8,12 @@ are capped at 500 steps). Results are appended as JSON lines (a rerun skips fini
 ``--report`` writes a markdown table and a PNG plot.
 
     python -m benchmarks.offline_random_cartpole --episodes 50 100 200 400 --seeds 10 11 12 13 14 --workers 1
+    python -m benchmarks.offline_random_cartpole --optimizer Rprop --learning-rate 0.01  # the paper's optimiser
+    python -m benchmarks.offline_random_cartpole --target-mode recompute_every_step --fit-epochs 1 --iterations 250
     python -m benchmarks.offline_random_cartpole --report
+
+Trials of different settings (optimizer, learning rate, iterations) are kept apart: the report has one table and
+one plotted series per setting.
 """
 
 import argparse
@@ -179,12 +184,42 @@ def run(
             print(f"N={record['n_episodes']} seed={record['seed']}: mean greedy length {record['mean_length']:.0f}")
 
 
-def report(results: Path, command: str) -> str:
+#: The command that ran the default settings' trials (other settings add their flags, see :func:`command_for`).
+BASE_COMMAND = "python -m benchmarks.offline_random_cartpole --episodes 50 100 200 400 --seeds 10 11 12 13 14"
+
+#: Command-line flag of each setting that may differ from ``OFFLINE_CONFIG``.
+CONFIG_FLAGS = {
+    "optimizer": "--optimizer",
+    "learning_rate": "--learning-rate",
+    "target_mode": "--target-mode",
+    "fit_epochs": "--fit-epochs",
+    "iterations": "--iterations",
+}
+
+
+def command_for(config: dict[str, Any]) -> str:
     """
-    Write ``offline_random_cartpole.md`` and ``.png`` next to ``results``.
+    :param config: the settings of a group of trials
+    :return: the command that runs them: ``BASE_COMMAND`` plus a flag per setting that differs from the default
+    """
+    flags = [f"{flag} {config[key]}" for key, flag in CONFIG_FLAGS.items() if config[key] != OFFLINE_CONFIG[key]]
+    return " ".join([BASE_COMMAND, *flags])
+
+
+def _setting_label(config: dict[str, Any]) -> str:
+    """:return: a short name of the settings, e.g. ``Adam, lr 0.001, 25 iterations``"""
+    return (
+        f"{config['optimizer']}, lr {config['learning_rate']:g}, {config['target_mode']}, "
+        f"{config['iterations']} iterations x {config['fit_epochs']} epochs"
+    )
+
+
+def report(results: Path) -> str:
+    """
+    Write ``offline_random_cartpole.md`` and ``.png`` next to ``results``: one table and one plotted series per
+    setting found in the results.
 
     :param results: the JSON-lines file
-    :param command: the command that produced the results, quoted in the report
     :return: the markdown text
     """
     import matplotlib
@@ -193,41 +228,65 @@ def report(results: Path, command: str) -> str:
     import matplotlib.pyplot as plt
 
     records = [json.loads(line) for line in results.read_text().splitlines()]
-    by_n: dict[int, list[dict[str, Any]]] = {}
+    by_config: dict[str, dict[int, list[dict[str, Any]]]] = {}
     for record in records:
-        by_n.setdefault(record["n_episodes"], []).append(record)
+        config_key = json.dumps(record["config"], sort_keys=True)
+        by_config.setdefault(config_key, {}).setdefault(record["n_episodes"], []).append(record)
+    random_length = sum(r["transitions"] for r in records) / sum(r["n_episodes"] for r in records)
     lines = [
         "# Offline NFQ from uniformly random episodes on CartPole-v1",
         "",
-        f"Produced by `{command}` then `python -m benchmarks.offline_random_cartpole --report`.",
-        f"Machine: {records[0]['machine']}; torch threads per trial: {records[0]['torch_threads']}.",
-        f"Settings: `{json.dumps(records[0]['config'])}`; a trial succeeds when the greedy mean episode length over "
-        f"{len(records[0]['eval_lengths'])} episodes reaches {SOLVED_LENGTH:.0f} (episodes are capped at 500).",
-        "The settings (and the 25 fitted iterations: longer fits degrade, the classic offline over-estimation) were",
-        "chosen beforehand on other seeds (0-2, N=200), so the seeds reported here were not used to pick them.",
+        f"Machine: {records[0]['machine']}; torch threads per trial: {records[0]['torch_threads']}. A trial succeeds "
+        f"when the greedy mean episode length over {len(records[0]['eval_lengths'])} episodes reaches "
+        f"{SOLVED_LENGTH:.0f} (episodes are capped at 500). The random policy that collected the data lasted "
+        f"{random_length:.1f} steps per episode on average. Tables and plot: "
+        "`python -m benchmarks.offline_random_cartpole --report`.",
         "",
-        "| random episodes N | transitions (mean) | trials | successes | greedy length median | min | max "
-        "| eval episodes balanced 500 steps |",
-        "|---|---|---|---|---|---|---|---|",
+        f"The default settings (`{json.dumps(OFFLINE_CONFIG)}`, the 25 fitted iterations included: longer fits",
+        "degrade, the classic offline over-estimation) were chosen beforehand on other seeds (0-2, N=200), so the",
+        "seeds reported here were not used to pick them. Other settings change only what their command says.",
     ]
-    for n in sorted(by_n):
-        group = by_n[n]
-        lengths = [r["mean_length"] for r in group]
-        lines.append(
-            f"| {n} | {np.mean([r['transitions'] for r in group]):.0f} | {len(group)} | "
-            f"{sum(r['success'] for r in group)}/{len(group)} | {np.median(lengths):.0f} | "
-            f"{min(lengths):.0f} | {max(lengths):.0f} | "
-            f"{sum(length == 500 for r in group for length in r['eval_lengths'])}/"
-            f"{sum(len(r['eval_lengths']) for r in group)} |"
-        )
-    medians = {n: float(np.median([r["mean_length"] for r in by_n[n]])) for n in sorted(by_n)}
-    successes = sum(r["success"] for r in records)
-    random_length = sum(r["transitions"] for r in records) / sum(r["n_episodes"] for r in records)
+    figure, axes = plt.subplots(figsize=(6, 4))
+    for index, (config_key, by_n) in enumerate(by_config.items()):
+        config = json.loads(config_key)
+        lines += [
+            "",
+            f"## {_setting_label(config)}",
+            "",
+            f"Produced by `{command_for(config)}`. Settings: `{json.dumps(config)}`.",
+            "",
+            "| random episodes N | transitions (mean) | trials | successes | greedy length median | min | max "
+            "| eval episodes balanced 500 steps |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for n in sorted(by_n):
+            group = by_n[n]
+            lengths = [r["mean_length"] for r in group]
+            lines.append(
+                f"| {n} | {np.mean([r['transitions'] for r in group]):.0f} | {len(group)} | "
+                f"{sum(r['success'] for r in group)}/{len(group)} | {np.median(lengths):.0f} | "
+                f"{min(lengths):.0f} | {max(lengths):.0f} | "
+                f"{sum(length == 500 for r in group for length in r['eval_lengths'])}/"
+                f"{sum(len(r['eval_lengths']) for r in group)} |"
+            )
+        medians = {n: float(np.median([r["mean_length"] for r in by_n[n]])) for n in sorted(by_n)}
+        group_records = [r for group in by_n.values() for r in group]
+        successes = sum(r["success"] for r in group_records)
+        lines += [
+            "",
+            f"Measured here: the median greedy length goes {', '.join(f'{m:.0f}' for m in medians.values())} for "
+            f"N = {', '.join(str(n) for n in medians)}; {successes} of {len(group_records)} trials reach "
+            f"{SOLVED_LENGTH:.0f}.",
+        ]
+        ns = sorted(by_n)
+        color = f"C{index}"
+        for n in ns:
+            lengths = [r["mean_length"] for r in by_n[n]]
+            axes.plot([n] * len(lengths), lengths, "o", color=color, alpha=0.4)
+        axes.plot(ns, list(medians.values()), "-", color=color, label=f"median, {_setting_label(config)}")
     lines += [
         "",
-        f"Measured here: the median greedy length goes {', '.join(f'{m:.0f}' for m in medians.values())} for "
-        f"N = {', '.join(str(n) for n in medians)}; {successes} of {len(records)} trials reach {SOLVED_LENGTH:.0f}. "
-        f"The random policy that collected the data lasted {random_length:.1f} steps per episode on average.",
+        "## The paper",
         "",
         "The 2005 paper reports 23/50, 44/50, 48/50 and 50/50 successes from 50, 100, 150 and 200 random episodes on",
         "its own pole-balancing task, with different dynamics, a cost function designed for the task, Rprop, and its",
@@ -239,18 +298,13 @@ def report(results: Path, command: str) -> str:
     markdown = "\n".join(lines)
     (results.parent / "offline_random_cartpole.md").write_text(markdown)
 
-    figure, axes = plt.subplots(figsize=(6, 4))
-    ns = sorted(by_n)
-    for n in ns:
-        lengths = [r["mean_length"] for r in by_n[n]]
-        axes.plot([n] * len(lengths), lengths, "o", color="C0", alpha=0.5)
-    axes.plot(ns, [np.median([r["mean_length"] for r in by_n[n]]) for n in ns], "-", color="C1", label="median")
+    all_ns = sorted({r["n_episodes"] for r in records})
     axes.axhline(SOLVED_LENGTH, color="gray", linestyle="--", linewidth=1, label="475")
-    axes.set(xscale="log", xticks=ns, xlabel="random episodes in the dataset", ylabel="greedy episode length")
-    axes.set_xticklabels([str(n) for n in ns])
+    axes.set(xscale="log", xticks=all_ns, xlabel="random episodes in the dataset", ylabel="greedy episode length")
+    axes.set_xticklabels([str(n) for n in all_ns])
     axes.minorticks_off()
     axes.set_title("NFQ fitted offline on random CartPole-v1 data")
-    axes.legend()
+    axes.legend(fontsize="small")
     figure.tight_layout()
     figure.savefig(results.parent / "offline_random_cartpole.png", dpi=120)
     return markdown
@@ -264,16 +318,32 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, nargs="+", default=[50, 100, 200, 400])
     parser.add_argument("--seeds", type=int, nargs="+", default=[10, 11, 12, 13, 14])
     parser.add_argument("--iterations", type=int, default=OFFLINE_CONFIG["iterations"])
+    parser.add_argument("--optimizer", choices=sorted(OPTIMIZERS), default=OFFLINE_CONFIG["optimizer"])
+    parser.add_argument(
+        "--learning-rate", type=float, default=OFFLINE_CONFIG["learning_rate"], help="(Rprop: the initial step size)"
+    )
+    parser.add_argument(
+        "--target-mode", choices=["fixed_per_iteration", "recompute_every_step"], default=OFFLINE_CONFIG["target_mode"]
+    )
+    parser.add_argument(
+        "--fit-epochs", type=int, default=OFFLINE_CONFIG["fit_epochs"], help="(1 with recompute_every_step)"
+    )
     parser.add_argument("--eval-episodes", type=int, default=20)
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--results", type=Path, default=RESULTS / "offline_random_cartpole.jsonl")
     parser.add_argument("--report", action="store_true", help="only write the markdown table and plot")
     args = parser.parse_args(argv)
     if args.report:
-        command = "python -m benchmarks.offline_random_cartpole --episodes 50 100 200 400 --seeds 10 11 12 13 14"
-        print(report(args.results, command))
+        print(report(args.results))
         return
-    config = {**OFFLINE_CONFIG, "iterations": args.iterations}
+    config = {
+        **OFFLINE_CONFIG,
+        "iterations": args.iterations,
+        "optimizer": args.optimizer,
+        "learning_rate": args.learning_rate,
+        "target_mode": args.target_mode,
+        "fit_epochs": args.fit_epochs,
+    }
     run(args.episodes, args.seeds, args.results, args.workers, args.eval_episodes, config)
 
 

@@ -208,9 +208,10 @@ def command_for(config: dict[str, Any]) -> str:
 
 def _setting_label(config: dict[str, Any]) -> str:
     """:return: a short name of the settings, e.g. ``Adam, lr 0.001, 25 iterations``"""
+    iterations, epochs = config["iterations"], config["fit_epochs"]
     return (
         f"{config['optimizer']}, lr {config['learning_rate']:g}, {config['target_mode']}, "
-        f"{config['iterations']} iterations x {config['fit_epochs']} epochs"
+        f"{iterations} iteration{'s' * (iterations != 1)} x {epochs} epoch{'s' * (epochs != 1)}"
     )
 
 
@@ -244,9 +245,10 @@ def report(results: Path) -> str:
         "",
         f"The default settings (`{json.dumps(OFFLINE_CONFIG)}`, the 25 fitted iterations included: longer fits",
         "degrade, the classic offline over-estimation) were chosen beforehand on other seeds (0-2, N=200), so the",
-        "seeds reported here were not used to pick them. Other settings change only what their command says.",
+        "seeds reported here were not used to pick them. Other settings change only what their command says, and",
+        "were not tuned.",
     ]
-    figure, axes = plt.subplots(figsize=(6, 4))
+    figure, axes = plt.subplots(figsize=(6, 5))
     for index, (config_key, by_n) in enumerate(by_config.items()):
         config = json.loads(config_key)
         lines += [
@@ -304,7 +306,7 @@ def report(results: Path) -> str:
     axes.set_xticklabels([str(n) for n in all_ns])
     axes.minorticks_off()
     axes.set_title("NFQ fitted offline on random CartPole-v1 data")
-    axes.legend(fontsize="small")
+    axes.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.15))
     figure.tight_layout()
     figure.savefig(results.parent / "offline_random_cartpole.png", dpi=120)
     return markdown

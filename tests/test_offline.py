@@ -187,7 +187,7 @@ def test_offline_study_keeps_each_optimizers_trials_apart(tmp_path: Path) -> Non
 
     markdown = study.report(results)
     assert markdown.count("| random episodes N |") == 2
-    assert "## Adam, lr 0.001, fixed_per_iteration, 1 iterations x 10 epochs" in markdown
-    assert "## Rprop, lr 0.01, fixed_per_iteration, 1 iterations x 10 epochs" in markdown
+    assert "## Adam, lr 0.001, fixed_per_iteration, 1 iteration x 10 epochs" in markdown
+    assert "## Rprop, lr 0.01, fixed_per_iteration, 1 iteration x 10 epochs" in markdown
     assert "--optimizer Rprop --learning-rate 0.01 --iterations 1" in markdown
     assert (tmp_path / "offline_random_cartpole.png").stat().st_size > 0

@@ -149,8 +149,12 @@ class Cell:
     def protocol(self) -> str:
         """:return: the evaluation period, and whether the runs stopped at the solve (final score at the solve)"""
         periods = ", ".join(f"{period:,}" for period in sorted({int(run["eval_every"]) for run in self.runs}))
-        stopped = any(run.get("stop_at_solve") for run in self.runs)
-        return f"{periods} steps" + (" (stopped at solve)" if stopped else "")
+        return f"{periods} steps" + (" (stopped at solve)" if self.stop_at_solve else "")
+
+    @property
+    def stop_at_solve(self) -> bool:
+        """:return: whether the runs stopped at their solve"""
+        return any(run.get("stop_at_solve") for run in self.runs)
 
     @property
     def eval_every(self) -> int:
@@ -198,7 +202,9 @@ def _distinct_label(cell: Cell, same_algo: Sequence[Cell]) -> str:
         details.append(f"budget {cell.budget:,}")
     if len({other.eval_every for other in same_algo}) > 1:
         details.append(f"evaluated every {cell.eval_every:,}")
-    if len({(other.budget, other.eval_every) for other in same_algo}) < len(same_algo):
+    if len({other.stop_at_solve for other in same_algo}) > 1:
+        details.append("stopped at solve" if cell.stop_at_solve else "to the budget")
+    if len({(other.budget, other.eval_every, other.stop_at_solve) for other in same_algo}) < len(same_algo):
         details.append(f"config {cell.config_hash}")
     return f"{cell.algo} ({', '.join(details)})"
 

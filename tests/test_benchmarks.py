@@ -293,6 +293,15 @@ def test_report_builds_readme_and_curves(results_file: Path, tmp_path: Path) -> 
     assert width > 100 and height > 100
 
 
+def test_report_labels_tell_apart_cells_of_one_algorithm(results_file: Path) -> None:
+    to_budget = [record for record in _lines(results_file) if record["algo"] == "nfq-book"]
+    # the same config run again with --stop-at-solve: another config hash, the same budget and evaluation period
+    stopped = [{**record, "stop_at_solve": True, "config_hash": "stopped"} for record in to_budget]
+    cells = report.build_cells([*to_budget, *stopped])["CartPole-v1"]
+    labels = sorted(cell.label for cell in cells if cell.algo == "nfq-book")
+    assert labels == ["nfq-book (stopped at solve)", "nfq-book (to the budget)"]
+
+
 def test_report_judges_targets_from_runner_data(results_file: Path) -> None:
     # Five seeds of the same runs under both names: the ratio of medians is exactly 1, so the ±25% target is met.
     records = _lines(results_file)

@@ -432,7 +432,9 @@ def target_lines(cells_by_env: dict[str, list[Cell]]) -> list[str]:
 def plot_curves(env: str, cells: Sequence[Cell], path: Path, seed: int = 0) -> None:
     """
     One PNG: per cell, the mean greedy return over seeds (curves interpolated on a common step grid, each run only
-    up to its last evaluation) with a 95% bootstrap band over seeds; the threshold as a dashed line.
+    up to its last evaluation) with a 95% bootstrap band over seeds; the threshold as a dashed line. The mean is
+    drawn while at least half of the cell's runs are still training: past that (runs stopped at their solve) it
+    would average the few runs left, the slowest, and fall.
 
     :param env: env id (title)
     :param cells: the env's cells
@@ -457,7 +459,7 @@ def plot_curves(env: str, cells: Sequence[Cell], path: Path, seed: int = 0) -> N
             inside = grid <= curve[-1, 0]
             row[inside] = np.interp(grid[inside], curve[:, 0], curve[:, 1])
         counts = np.sum(~np.isnan(values), axis=0)
-        keep = counts > 0
+        keep = counts >= len(curves) / 2
         mean = np.nanmean(values[:, keep], axis=0)
         resamples = values[rng.integers(len(curves), size=(BOOTSTRAP_REPS // 4, len(curves)))][:, :, keep]
         with warnings.catch_warnings():  # a resample may hold no run that reached a step: its mean is NaN
@@ -536,7 +538,9 @@ def build_report(records: Sequence[dict[str, Any]], out_dir: Path, results_path:
         "then 100 new greedy episodes give the final score; runs marked (stopped at solve) ran with "
         "`--stop-at-solve`: their training stopped at the solve and their final score is taken there. A run whose "
         "loss became non-finite stops there (NFQ raises `NFQDivergenceError`); it counts as unsolved unless it had "
-        "solved before, and the success column says how many diverged. Training seconds exclude evaluation time.",
+        "solved before, and the success column says how many diverged. Training seconds exclude evaluation time. "
+        "Learning curves: mean over seeds with a 95% bootstrap band, drawn while at least half of a row's runs are "
+        "still training (a row stopped at solve ends near its median steps to solve).",
         "",
         f"Steps to solve: unsolved runs count as the steps they trained (censored), so a value marked ≥ is a lower "
         f"bound. IQM and its 95% CI: {ci_method()}. Rows marked * use a placeholder config (the book's settings until "

@@ -438,9 +438,26 @@ def _jsonable(value: Any) -> Any:
     return repr(value)
 
 
+def make_training_env(env_id: str, n_envs: int, seed: int) -> Any:
+    """
+    The training envs of NFQ and DQN: SB3's ``make_vec_env``, but with no render mode, like the reference's
+    ``gym.make(env_id)`` and the evaluation envs. Given an env id, SB3 asks for ``render_mode="rgb_array"``;
+    LunarLander then simulates exhaust particles as Box2D bodies at every engine firing (for drawing only: they
+    collide with the ground, never the lander), which made its steps several times slower for SB3 algorithms
+    than for the reference without changing a single observation.
+
+    :param env_id: gymnasium env id
+    :param n_envs: number of envs
+    :param seed: seed of the first env (SB3's convention: env ``i`` gets ``seed + i``)
+    :return: a ``DummyVecEnv`` of ``Monitor``-wrapped envs
+    """
+    from stable_baselines3.common.env_util import make_vec_env
+
+    return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs={"render_mode": None})
+
+
 def _train_sb3(job: Job, tracker: SolveTracker) -> Trained:
     from stable_baselines3 import DQN
-    from stable_baselines3.common.env_util import make_vec_env
 
     from sb3_nfq import NFQ, NFQDivergenceError
 
@@ -448,7 +465,7 @@ def _train_sb3(job: Job, tracker: SolveTracker) -> Trained:
     n_envs = int(kwargs.pop("n_envs", 1))
     policy = kwargs.pop("policy", "MlpPolicy")
     algorithm_class: Any = NFQ if job.kind == "nfq" else DQN
-    env = make_vec_env(job.env_id, n_envs=n_envs, seed=job.seed)
+    env = make_training_env(job.env_id, n_envs=n_envs, seed=job.seed)
     model = algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **sb3_kwargs(kwargs))
 
     def act(observations: np.ndarray) -> np.ndarray:

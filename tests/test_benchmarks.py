@@ -236,6 +236,22 @@ def test_runner_skips_jobs_already_done(results_file: Path, capsys: pytest.Captu
     assert "6 already in" in capsys.readouterr().out
 
 
+def test_training_envs_have_no_render_mode_like_the_reference() -> None:
+    """SB3 renders LunarLander's exhaust particles for an env id; the runner's training envs must not pay for it."""
+    import gymnasium as gym
+
+    vec_env = run.make_training_env("LunarLander-v3", n_envs=2, seed=3)
+    assert vec_env.get_attr("render_mode") == [None, None]
+    reference_env = gym.make("LunarLander-v3")  # as ReferenceNFQ makes it
+    expected, _ = reference_env.reset(seed=3)
+    np.testing.assert_array_equal(vec_env.reset()[0], expected)
+    for _ in range(30):  # fire the main engine: with a render mode, each firing adds particle bodies
+        observations, _, _, _ = vec_env.step(np.array([2, 2]))
+        expected, _, _, _, _ = reference_env.step(2)
+        np.testing.assert_array_equal(observations[0], expected)
+    assert vec_env.get_attr("particles") == [[], []]
+
+
 def test_a_diverged_nfq_run_is_recorded_as_unsolved_with_the_error() -> None:
     th.set_num_threads(1)
     job = run.Job(
@@ -329,4 +345,9 @@ def test_overhead_script_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     numbers = json.loads(out.read_text())
     assert numbers["threads"] == 1
     assert numbers["round"]["ratio"] > 0 and numbers["fitting"]["ratio"] > 0
+    assert numbers["round"]["ratio_without_env"] > 0
+    for implementation in ("nfq", "reference"):  # the env's share is timed, and is part of the collection
+        times = numbers["round"][implementation]
+        assert 0 < times["env"] <= times["collect"]
+        assert times["without_env"] == pytest.approx(times["total"] - times["env"], rel=0.5)
     assert numbers["fitting"]["max_weight_difference_after_first_fit"] < 1e-4  # same data, same start: same fit

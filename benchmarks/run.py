@@ -39,7 +39,7 @@ import traceback
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -47,6 +47,9 @@ import torch as th
 from torch import nn
 
 from benchmarks import configs
+
+if TYPE_CHECKING:
+    from stable_baselines3.common.vec_env import VecEnv
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_RESULTS = REPO_ROOT / "benchmarks" / "results" / "runs.jsonl"
@@ -438,13 +441,14 @@ def _jsonable(value: Any) -> Any:
     return repr(value)
 
 
-def make_training_env(env_id: str, n_envs: int, seed: int) -> Any:
+def make_training_env(env_id: str, n_envs: int, seed: int) -> "VecEnv":
     """
     The training envs of NFQ and DQN: SB3's ``make_vec_env``, but with no render mode, like the reference's
     ``gym.make(env_id)`` and the evaluation envs. Given an env id, SB3 asks for ``render_mode="rgb_array"``;
     LunarLander then simulates exhaust particles as Box2D bodies at every engine firing (for drawing only: they
-    collide with the ground, never the lander), which made its steps several times slower for SB3 algorithms
-    than for the reference without changing a single observation.
+    collide with the ground, never the lander). That slowed SB3 algorithms' LunarLander steps against the
+    reference's without changing a single observation (the textbook NFQ's 500k-step runs: 284-301 s of training
+    with particles, 210-222 s without, identical learning curves).
 
     :param env_id: gymnasium env id
     :param n_envs: number of envs

@@ -244,9 +244,12 @@ def test_training_envs_have_no_render_mode_like_the_reference() -> None:
     assert vec_env.get_attr("render_mode") == [None, None]
     reference_env = gym.make("LunarLander-v3")  # as ReferenceNFQ makes it
     expected, _ = reference_env.reset(seed=3)
-    np.testing.assert_array_equal(vec_env.reset()[0], expected)
+    observations = vec_env.reset()
+    assert isinstance(observations, np.ndarray)
+    np.testing.assert_array_equal(observations[0], expected)
     for _ in range(30):  # fire the main engine: with a render mode, each firing adds particle bodies
         observations, _, _, _ = vec_env.step(np.array([2, 2]))
+        assert isinstance(observations, np.ndarray)
         expected, _, _, _, _ = reference_env.step(2)
         np.testing.assert_array_equal(observations[0], expected)
     assert vec_env.get_attr("particles") == [[], []]

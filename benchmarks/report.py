@@ -67,14 +67,22 @@ def iqm_with_ci(values: np.ndarray, seed: int = 0) -> tuple[float, float, float]
         return point, point, point
     library = _rliable_library()
     if isinstance(library, ModuleType):
-        with warnings.catch_warnings():  # arch deprecates random_state; rliable 1.2 still passes it
-            warnings.simplefilter("ignore", FutureWarning)
-            _, intervals = library.get_interval_estimates(
-                {"x": scores},
-                lambda x: np.array([metrics.aggregate_iqm(x)]),
-                reps=BOOTSTRAP_REPS,
-                random_state=np.random.RandomState(seed),
-            )
+        # rliable 1.2's StratifiedBootstrap draws its resamples with the global np.random.choice, whatever
+        # random_state says: without seeding the global generator here, a cell's CI depended on what the report
+        # had computed before it (the row order of the results file). Seed it per call, then restore it.
+        global_state = np.random.get_state()
+        np.random.seed(seed)
+        try:
+            with warnings.catch_warnings():  # arch deprecates random_state; rliable 1.2 still passes it
+                warnings.simplefilter("ignore", FutureWarning)
+                _, intervals = library.get_interval_estimates(
+                    {"x": scores},
+                    lambda x: np.array([metrics.aggregate_iqm(x)]),
+                    reps=BOOTSTRAP_REPS,
+                    random_state=np.random.RandomState(seed),
+                )
+        finally:
+            np.random.set_state(global_state)
         return point, float(intervals["x"][0, 0]), float(intervals["x"][1, 0])
     rng = np.random.default_rng(seed)
     resampled = [

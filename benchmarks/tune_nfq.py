@@ -5,6 +5,7 @@ measures on the benchmark seeds (0-4), which tuning never sees.
 
     python -m benchmarks.tune_nfq --envs Acrobot-v1 [MountainCar-v0 ...] [--candidates NAME ...] [--seeds 100-101]
         [--workers 2] [--results benchmarks/results/tuning_per_env.jsonl] [--list] [--summary-only]
+        [--budget N --eval-episodes N: smoke tests only]
 
 Protocol: each (candidate, env, seed) is one job of ``benchmarks/run.py`` (same greedy evaluations of 100 episodes
 every ``eval_every`` steps, same threshold, one torch thread, one spawned process per job), run with
@@ -86,15 +87,47 @@ CANDIDATES: dict[str, dict[str, dict[str, Any]]] = {
             "policy_kwargs": "dict(net_arch=[128, 128], optimizer_class=th.optim.Adam)",
             "n_timesteps": configs.ZOO_DQN_BUDGETS["LunarLander-v3"],
         },
+        # Second round, after the three above solved no tuning seed and swung by hundreds between evaluations:
+        # the shared config refits the whole memory 8 times every 256 steps (at 50k transitions, ~12 mini-batch
+        # steps per env step, against the Zoo DQN's one). These refit it 4 times every 1024 steps (16x fewer).
+        "low-replay-memory-50k-zoo-eps": {
+            **_SHARED,
+            **_ZOO_LUNAR_EXPLORATION,
+            "train_freq": 1024,
+            "gradient_steps": 4,
+            "buffer_size": 50_000,
+            "n_timesteps": configs.ZOO_DQN_BUDGETS["LunarLander-v3"],
+        },
+        # ... with the Zoo DQN's network (256-256) and a smaller, Huber-loss step.
+        "low-replay-256x256-huber-lr-5e-4-memory-50k-zoo-eps": {
+            **_SHARED,
+            **_ZOO_LUNAR_EXPLORATION,
+            "train_freq": 1024,
+            "gradient_steps": 4,
+            "buffer_size": 50_000,
+            "loss": "huber",
+            "learning_rate": 5e-4,
+            "policy_kwargs": "dict(net_arch=[256, 256], optimizer_class=th.optim.Adam)",
+            "n_timesteps": configs.ZOO_DQN_BUDGETS["LunarLander-v3"],
+        },
     },
 }
 
 
-def candidate_jobs(env_id: str, names: Sequence[str], seeds: Sequence[int], command: str = "") -> list[Job]:
+def candidate_jobs(
+    env_id: str,
+    names: Sequence[str],
+    seeds: Sequence[int],
+    budget: int | None = None,
+    n_eval_episodes: int = configs.N_EVAL_EPISODES,
+    command: str = "",
+) -> list[Job]:
     """
     :param env_id: one of :data:`CANDIDATES`' envs
     :param names: candidate names for that env
     :param seeds: tuning seeds
+    :param budget: env-step budget of every job (default: each candidate's; smaller only for smoke tests)
+    :param n_eval_episodes: greedy episodes per evaluation (fewer only for smoke tests)
     :param command: the command line, recorded with each result
     :return: one runner job per candidate and seed, stopped at solve
     """
@@ -108,7 +141,7 @@ def candidate_jobs(env_id: str, names: Sequence[str], seeds: Sequence[int], comm
     jobs = []
     for name in names:
         kwargs = dict(CANDIDATES[env_id][name])
-        budget = int(kwargs.pop("n_timesteps", spec.budget))
+        candidate_budget = int(kwargs.pop("n_timesteps", spec.budget))
         for seed in seeds:
             jobs.append(
                 Job(
@@ -116,10 +149,11 @@ def candidate_jobs(env_id: str, names: Sequence[str], seeds: Sequence[int], comm
                     kind="nfq",
                     env_id=env_id,
                     seed=seed,
-                    budget=budget,
+                    budget=budget if budget is not None else candidate_budget,
                     kwargs=kwargs,
                     threshold=spec.threshold,
                     eval_every=spec.eval_every,
+                    n_eval_episodes=n_eval_episodes,
                     stop_at_solve=True,
                     source="benchmarks/tune_nfq.py",
                     command=command,
@@ -216,6 +250,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--envs", nargs="+", required=True, choices=sorted(CANDIDATES))
     parser.add_argument("--candidates", nargs="+", help="candidate names (default: all of each env's)")
     parser.add_argument("--seeds", nargs="+", default=[DEFAULT_TUNING_SEEDS], help="tuning seeds (default 100-101)")
+    parser.add_argument("--budget", type=int, help="env-step budget of every job (default: each candidate's)")
+    parser.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=configs.N_EVAL_EPISODES,
+        help="greedy episodes per evaluation (default 100, the criterion; fewer only for smoke tests)",
+    )
     parser.add_argument("--workers", type=int, default=2, help="local worker processes (0: in this process)")
     parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="JSON-lines results file")
     parser.add_argument("--list", action="store_true", help="list the candidates and exit")
@@ -236,7 +277,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         jobs = [
             job
             for env_id in args.envs
-            for job in candidate_jobs(env_id, args.candidates or list(CANDIDATES[env_id]), seeds, command)
+            for job in candidate_jobs(
+                env_id, args.candidates or list(CANDIDATES[env_id]), seeds, args.budget, args.eval_episodes, command
+            )
         ]
         _, _, failures = run_jobs(jobs, args.results, args.workers)
     records = read_results(args.results)

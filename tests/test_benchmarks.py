@@ -14,7 +14,7 @@ import pytest
 import torch as th
 from torch.nn import functional as F
 
-from benchmarks import configs, overhead, report, run
+from benchmarks import configs, overhead, report, run, tune_nfq
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
 
 RESULT_FIELDS = {
@@ -335,6 +335,86 @@ def test_report_judges_targets_from_runner_data(results_file: Path) -> None:
         report.build_cells(solved), "CartPole-v1", "nfq-book", "reference-nfq", 0.75, 1.25
     )
     assert verdict == "met" and text.startswith("1.00")
+
+
+def test_report_bootstrap_ci_does_not_depend_on_numpy_global_state() -> None:
+    """rliable 1.2 resamples with the global np.random: a cell's CI must not depend on what ran before it."""
+    steps = np.array([12_288.0, 14_336, 14_336, 20_480, 40_960, 61_440, 90_112, 100_096])
+    first = report.iqm_with_ci(steps)
+    np.random.seed(12345)
+    np.random.random(17)
+    state = np.random.get_state()
+    assert report.iqm_with_ci(steps) == first
+    assert np.array_equal(np.random.get_state()[1], state[1]), "the caller's global generator is left as it was"
+
+
+# --- per-env tuning -----------------------------------------------------------------------------------------------
+
+
+def test_every_tuning_candidate_builds_an_nfq_model() -> None:
+    from sb3_nfq import NFQ
+
+    for env_id, candidates in tune_nfq.CANDIDATES.items():
+        assert env_id in configs.ENVS
+        for name, candidate in candidates.items():
+            job = tune_nfq.candidate_jobs(env_id, [name], [0])[0]
+            assert job.stop_at_solve and job.algo == f"tune:{name}"
+            assert job.budget == int(candidate.get("n_timesteps", configs.ENVS[env_id].budget))
+            model = NFQ("MlpPolicy", env_id, **run.sb3_kwargs(job.kwargs))
+            assert model.gamma == candidate.get("gamma", 1.0)
+
+
+def test_tuned_configs_are_tuning_candidates() -> None:
+    """Every non-placeholder nfq-tuned entry off CartPole is one of the tuning sweep's candidates, unchanged."""
+    for env_id, candidates in tune_nfq.CANDIDATES.items():
+        if configs.is_placeholder("nfq-tuned", env_id):
+            continue
+        assert configs.NFQ_CONFIGS["nfq-tuned"][env_id] in candidates.values(), env_id
+
+
+def test_tuning_sweep_runs_ranks_and_resumes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    th.set_num_threads(1)
+    results = tmp_path / "tuning.jsonl"
+    args = ["--envs", "Acrobot-v1", "--candidates", "book", "book-gamma-0.99", "--seeds", "0"]
+    args += ["--budget", "1024", "--eval-episodes", "2", "--workers", "0", "--results", str(results)]
+    assert tune_nfq.main(args) == 0
+    records = _lines(results)
+    assert sorted(r["algo"] for r in records) == ["tune:book", "tune:book-gamma-0.99"]
+    assert all(r["stop_at_solve"] and r["env"] == "Acrobot-v1" and r["steps_trained"] >= 1024 for r in records)
+    assert all(r["command"].startswith("python -m benchmarks.tune_nfq ") for r in records)
+    out = capsys.readouterr().out
+    assert "| 1 | " in out and "| 2 | " in out
+    assert tune_nfq.main(args) == 0
+    assert len(_lines(results)) == 2 and "2 already in" in capsys.readouterr().out
+    with pytest.raises(KeyError, match="unknown candidates"):
+        tune_nfq.candidate_jobs("Acrobot-v1", ["no-such-candidate"], [0])
+
+
+def test_tuning_ranking_prefers_solved_then_fewer_steps_then_fewer_seconds() -> None:
+    def record(name: str, seed: int, steps: int | None, seconds: float) -> dict[str, Any]:
+        return {
+            "algo": f"tune:{name}",
+            "env": "Acrobot-v1",
+            "seed": seed,
+            "solved": steps is not None,
+            "steps_to_solve": steps,
+            "steps_trained": 300_000 if steps is None else steps,
+            "train_seconds": seconds,
+        }
+
+    records = [
+        record("fast-but-fails-once", 0, 2_048, 1.0),
+        record("fast-but-fails-once", 1, None, 1.0),
+        record("slow", 0, 40_960, 9.0),
+        record("slow", 1, 40_960, 9.0),
+        record("quick", 0, 8_192, 5.0),
+        record("quick", 1, 8_192, 5.0),
+        record("quick-and-cheap", 0, 8_192, 2.0),
+        record("quick-and-cheap", 1, 8_192, 2.0),
+        {**record("other-env", 0, 1, 0.1), "env": "CartPole-v1"},
+    ]
+    ranked = [summary.name for summary in tune_nfq.summarize(records, "Acrobot-v1")]
+    assert ranked == ["quick-and-cheap", "quick", "slow", "fast-but-fails-once"]
 
 
 # --- overhead ---------------------------------------------------------------------------------------------------

@@ -91,11 +91,13 @@ GROWING_MEMORY_CONFIG: dict[str, Any] = {
 NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
     # The textbook settings, i.e. NFQ's defaults, on every env.
     "nfq-book": {ALL_ENVS: {}},
-    # One tuned config per env. CartPole-v1: GROWING_MEMORY_CONFIG with the Zoo's DQN budget.
-    # The other envs are PLACEHOLDERS (the book's settings) until tuned.
+    # One tuned config per env. CartPole-v1: GROWING_MEMORY_CONFIG with the Zoo's DQN budget. The others: the
+    # winner of benchmarks/tune_nfq.py's sweep on that env (tuning seeds 100-101, results in
+    # benchmarks/results/tuning_per_env.jsonl); entries still equal to {} are PLACEHOLDERS (the book's settings).
     "nfq-tuned": {
         "CartPole-v1": {**GROWING_MEMORY_CONFIG, "n_timesteps": ZOO_DQN_BUDGETS["CartPole-v1"]},
-        "Acrobot-v1": {},
+        # "book-eps-1-to-0.05": the textbook NFQ, with epsilon decaying 1 -> 0.05 over the first 30k steps.
+        "Acrobot-v1": {"exploration_initial_eps": 1.0, "exploration_final_eps": 0.05, "exploration_fraction": 0.1},
         "MountainCar-v0": {},
         "LunarLander-v3": {},
     },
@@ -108,7 +110,6 @@ NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
 
 #: (config, env id or ALL_ENVS) entries that are still placeholders: the results file and the report flag them.
 PLACEHOLDER_CONFIGS: set[tuple[str, str]] = {
-    ("nfq-tuned", "Acrobot-v1"),
     ("nfq-tuned", "MountainCar-v0"),
     ("nfq-tuned", "LunarLander-v3"),
 }

@@ -98,7 +98,13 @@ NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
         "CartPole-v1": {**GROWING_MEMORY_CONFIG, "n_timesteps": ZOO_DQN_BUDGETS["CartPole-v1"]},
         # "book-eps-1-to-0.05": the textbook NFQ, with epsilon decaying 1 -> 0.05 over the first 30k steps.
         "Acrobot-v1": {"exploration_initial_eps": 1.0, "exploration_final_eps": 0.05, "exploration_fraction": 0.1},
-        "MountainCar-v0": {},
+        # "shared-memory-10k-gamma-0.98": GROWING_MEMORY_CONFIG with the Zoo DQN's MountainCar memory and discount.
+        "MountainCar-v0": {
+            **GROWING_MEMORY_CONFIG,
+            "buffer_size": 10_000,
+            "gamma": 0.98,
+            "n_timesteps": ZOO_DQN_BUDGETS["MountainCar-v0"],
+        },
         "LunarLander-v3": {},
     },
     # ONE config for all four envs: the CartPole-tuned GROWING_MEMORY_CONFIG, unchanged; only the budget is the
@@ -110,7 +116,6 @@ NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
 
 #: (config, env id or ALL_ENVS) entries that are still placeholders: the results file and the report flag them.
 PLACEHOLDER_CONFIGS: set[tuple[str, str]] = {
-    ("nfq-tuned", "MountainCar-v0"),
     ("nfq-tuned", "LunarLander-v3"),
 }
 

@@ -93,7 +93,7 @@ NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
     "nfq-book": {ALL_ENVS: {}},
     # One tuned config per env. CartPole-v1: GROWING_MEMORY_CONFIG with the Zoo's DQN budget. The others: the
     # winner of benchmarks/tune_nfq.py's sweep on that env (tuning seeds 100-101, results in
-    # benchmarks/results/tuning_per_env.jsonl); entries still equal to {} are PLACEHOLDERS (the book's settings).
+    # benchmarks/results/tuning_per_env.jsonl).
     "nfq-tuned": {
         "CartPole-v1": {**GROWING_MEMORY_CONFIG, "n_timesteps": ZOO_DQN_BUDGETS["CartPole-v1"]},
         # "book-eps-1-to-0.05": the textbook NFQ, with epsilon decaying 1 -> 0.05 over the first 30k steps.
@@ -105,7 +105,20 @@ NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
             "gamma": 0.98,
             "n_timesteps": ZOO_DQN_BUDGETS["MountainCar-v0"],
         },
-        "LunarLander-v3": {},
+        # "low-replay-256x256-huber-lr-5e-4-memory-50k-zoo-eps": 4 refits of a 50k memory every 1024 steps (16x
+        # fewer than GROWING_MEMORY_CONFIG), the Zoo DQN's 256-256 network and exploration, Huber loss, Adam 5e-4.
+        "LunarLander-v3": {
+            **GROWING_MEMORY_CONFIG,
+            "exploration_final_eps": 0.1,
+            "exploration_fraction": 0.12,
+            "train_freq": 1024,
+            "gradient_steps": 4,
+            "buffer_size": 50_000,
+            "loss": "huber",
+            "learning_rate": 5e-4,
+            "policy_kwargs": "dict(net_arch=[256, 256], optimizer_class=th.optim.Adam)",
+            "n_timesteps": ZOO_DQN_BUDGETS["LunarLander-v3"],
+        },
     },
     # ONE config for all four envs: the CartPole-tuned GROWING_MEMORY_CONFIG, unchanged; only the budget is the
     # env's (the Zoo's DQN budget there).
@@ -115,9 +128,7 @@ NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
 }
 
 #: (config, env id or ALL_ENVS) entries that are still placeholders: the results file and the report flag them.
-PLACEHOLDER_CONFIGS: set[tuple[str, str]] = {
-    ("nfq-tuned", "LunarLander-v3"),
-}
+PLACEHOLDER_CONFIGS: set[tuple[str, str]] = set()
 
 
 def is_placeholder(algo: str, env_id: str) -> bool:

@@ -551,8 +551,12 @@ def build_report(records: Sequence[dict[str, Any]], out_dir: Path, results_path:
         "still training (a row stopped at solve ends near its median steps to solve).",
         "",
         f"Steps to solve: unsolved runs count as the steps they trained (censored), so a value marked ≥ is a lower "
-        f"bound. IQM and its 95% CI: {ci_method()}. Rows marked * use a placeholder config (the book's settings until "
-        "tuned values are supplied).",
+        f"bound. IQM and its 95% CI: {ci_method()}."
+        + (
+            " Rows marked * use a placeholder config (the book's settings until tuned values are supplied)."
+            if any(record.get("placeholder_config") for record in records)
+            else ""
+        ),
         "",
         "## Targets",
         "",

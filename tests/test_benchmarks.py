@@ -308,10 +308,20 @@ def test_report_builds_readme_and_curves(results_file: Path, tmp_path: Path) -> 
     for algo in RUNNER_ALGOS:
         assert f"| {algo} | 2 | 1,024 |" in text
     assert "not enough data" in text  # 2 seeds are not enough to judge a target
+    assert "Rows marked *" not in text  # no placeholder config among the runs
     png = (out_dir / "curves_CartPole-v1.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     width, height = struct.unpack(">II", png[16:24])
     assert width > 100 and height > 100
+
+
+def test_report_flags_placeholder_rows(results_file: Path, tmp_path: Path) -> None:
+    records = [dict(record, placeholder_config=record["algo"] == "nfq-book") for record in _lines(results_file)]
+    flagged = tmp_path / "runs.jsonl"
+    flagged.write_text("".join(json.dumps(record) + "\n" for record in records))
+    assert report.main(["--results", str(flagged), "--out-dir", str(tmp_path / "report")]) == 0
+    text = (tmp_path / "report" / "README.md").read_text()
+    assert "Rows marked * use a placeholder config" in text and "| nfq-book * | 2 |" in text
 
 
 def test_report_labels_tell_apart_cells_of_one_algorithm(results_file: Path) -> None:

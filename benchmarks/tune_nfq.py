@@ -16,9 +16,10 @@ Ranking, per env: most seeds solved, then the lowest median steps to solve (an u
 trained), then the lowest median training seconds.
 
 The candidates are a handful of hand-picked variations of the configs already benchmarked (the book's settings and
-the CartPole-tuned growing-memory config), each changing what the env's difficulty suggests: exploration for
-MountainCar's sparse reward, memory size and the Zoo DQN's exploration for LunarLander. A search this small is
-affordable on 2 cores (a growing-memory run to 100k steps takes 10-25 minutes there); the RL Zoo's Optuna
+the CartPole-tuned growing-memory config), each changing what the env's difficulty suggests: exploration and discount
+on Acrobot, the Zoo DQN's memory size and discount on MountainCar, and on LunarLander memory size, refit rate,
+network, loss and the Zoo DQN's exploration. A search this small is affordable on 2 cores (the shared growing-memory
+config ran 9-27 minutes to the Zoo's budget there); the RL Zoo's Optuna
 (``python -m sb3_nfq.zoo train --algo nfq --env ENV -optimize``) searches wider where more CPU is available.
 """
 

@@ -1,6 +1,7 @@
 """
 Fast tests of the benchmark suite (benchmarks/): the plain-PyTorch reference NFQ, the runner (JSON lines,
-resumability, local pool, Ray), the report and the overhead script. Tiny budgets, real envs, no mocks.
+resumability, local pool, Ray), the report, the per-env tuning sweep and the overhead script. Tiny budgets, real
+envs, no mocks.
 """
 
 import json

@@ -12,6 +12,7 @@ Then the project's targets, each "met", "not met" or "not enough data", and one 
 
 import argparse
 import functools
+import json
 import math
 import shlex
 import sys
@@ -113,6 +114,10 @@ class Cell:
     config_hash: str
     runs: list[dict[str, Any]]
     label: str = ""
+    #: The runs used a config that ``benchmarks/configs.py`` no longer gives this algorithm on this env.
+    earlier_config: bool = False
+    #: For an earlier config: the algorithm whose config on this env it is now, if any.
+    now_config_of: str | None = None
 
     @property
     def n(self) -> int:
@@ -174,27 +179,54 @@ class Cell:
         return np.array([run["train_seconds"] for run in self.runs], dtype=float)
 
 
+def current_config(algo: str, env: str) -> dict[str, Any] | None:
+    """
+    :return: the kwargs ``algo`` runs with on ``env`` today, as recorded in a result line's ``config``; ``None`` when
+        the runner has no such config (a tuning candidate, an env without an entry, ``dqn-zoo`` without rl_zoo3)
+    """
+    try:
+        kwargs = configs.resolve(algo, env).kwargs
+    except (KeyError, ModuleNotFoundError):
+        return None
+    return dict(json.loads(json.dumps(kwargs)))
+
+
 def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     """
     :param records: result lines
-    :return: env -> cells, in :data:`configs.ENVS` then algorithm order; within a (env, algo), the cell with the
-        most seeds first (the one targets use). A seed that appears twice in a cell keeps its last line.
+    :return: env -> cells, in :data:`configs.ENVS` then algorithm order, cells of an earlier config (one that
+        ``benchmarks/configs.py`` has since replaced) last; within a (env, algo), the cell with the most seeds first
+        (the one targets use). A seed that appears twice in a cell keeps its last line.
     """
     grouped: dict[tuple[str, str, int, str], dict[int, dict[str, Any]]] = defaultdict(dict)
     for record in records:
         grouped[(record["env"], record["algo"], int(record["budget"]), record["config_hash"])][record["seed"]] = record
     by_env: dict[str, list[Cell]] = defaultdict(list)
     for (env, algo, budget, config_hash), runs in grouped.items():
-        by_env[env].append(Cell(env, algo, budget, config_hash, [runs[seed] for seed in sorted(runs)]))
+        cell = Cell(env, algo, budget, config_hash, [runs[seed] for seed in sorted(runs)])
+        recorded = cell.runs[0].get("config")
+        current = current_config(algo, env)
+        if current is not None and recorded != current:
+            cell.earlier_config = True
+            cell.now_config_of = next(
+                (other for other in configs.algorithm_names() if current_config(other, env) == recorded), None
+            )
+        by_env[env].append(cell)
     env_order: dict[str, int] = {}
     for env in [*configs.ENVS, *sorted(by_env)]:
         env_order.setdefault(env, len(env_order))
     algo_order = {algo: index for index, algo in enumerate(configs.algorithm_names())}
     result = {}
     for env in sorted(by_env, key=lambda name: env_order[name]):
-        cells = sorted(by_env[env], key=lambda cell: (algo_order.get(cell.algo, len(algo_order)), cell.algo, -cell.n))
+        cells = sorted(
+            by_env[env],
+            key=lambda cell: (cell.earlier_config, algo_order.get(cell.algo, len(algo_order)), cell.algo, -cell.n),
+        )
         for cell in cells:
-            cell.label = _distinct_label(cell, [other for other in cells if other.algo == cell.algo])
+            same_algo = [
+                other for other in cells if other.algo == cell.algo and other.earlier_config == cell.earlier_config
+            ]
+            cell.label = _distinct_label(cell, same_algo)
             if cell.placeholder:
                 cell.label += " *"
         result[env] = cells
@@ -202,10 +234,15 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
 
 
 def _distinct_label(cell: Cell, same_algo: Sequence[Cell]) -> str:
-    """:return: the algorithm name, plus what tells this cell apart from the algorithm's other cells on the env"""
-    if len(same_algo) == 1:
-        return cell.algo
+    """
+    :param same_algo: the cells of the same algorithm on the env, current or earlier config like ``cell``
+    :return: the algorithm name, plus what tells this cell apart from the algorithm's other cells on the env
+    """
     details = []
+    if cell.earlier_config:
+        details.append(f"earlier config, now {cell.now_config_of}'s" if cell.now_config_of else "earlier config")
+    if len(same_algo) == 1:
+        return f"{cell.algo} ({details[0]})" if details else cell.algo
     if len({other.budget for other in same_algo}) > 1:
         details.append(f"budget {cell.budget:,}")
     if len({other.eval_every for other in same_algo}) > 1:
@@ -226,10 +263,15 @@ def primary_cell(
     """
     cells = [
         cell
-        for cell in cells_by_env.get(env, [])
+        for cell in current_cells(cells_by_env, env)
         if cell.algo == algo and (eval_every is None or cell.eval_every == eval_every)
     ]
     return max(cells, key=lambda cell: cell.n) if cells else None
+
+
+def current_cells(cells_by_env: dict[str, list[Cell]], env: str) -> list[Cell]:
+    """:return: the env's cells that ran the algorithms' current configs (the ones targets and plots use)"""
+    return [cell for cell in cells_by_env.get(env, []) if not cell.earlier_config]
 
 
 # --- formatting -------------------------------------------------------------------------------------------------
@@ -282,7 +324,7 @@ def common_eval_periods(cells_by_env: dict[str, list[Cell]], env: str, algos: Se
     :return: the evaluation periods at which every one of ``algos`` has runs on ``env`` (steps to solve are only
         comparable at the same period: a finer grid catches earlier, possibly transient, solves); ``[None]`` if none
     """
-    periods = [{cell.eval_every for cell in cells_by_env.get(env, []) if cell.algo == algo} for algo in algos]
+    periods = [{cell.eval_every for cell in current_cells(cells_by_env, env) if cell.algo == algo} for algo in algos]
     common = sorted(set.intersection(*periods)) if periods else []
     return [*common] if common else [None]
 
@@ -428,7 +470,9 @@ def target_lines(cells_by_env: dict[str, list[Cell]]) -> list[str]:
         )
     lines = ["| target | verdict | measured |", "|---|---|---|"]
     for name, (verdict, text), algos, envs in targets:
-        placeholder = any(cell.placeholder for env in envs for cell in cells_by_env.get(env, []) if cell.algo in algos)
+        placeholder = any(
+            cell.placeholder for env in envs for cell in current_cells(cells_by_env, env) if cell.algo in algos
+        )
         note = " (placeholder config)" if placeholder else ""
         lines.append(f"| {name} | **{verdict}**{note} | {text} |")
     return lines
@@ -566,15 +610,20 @@ def build_report(records: Sequence[dict[str, Any]], out_dir: Path, results_path:
     for env, cells in cells_by_env.items():
         eval_every = ", ".join(str(e) for e in _unique([run for cell in cells for run in cell.runs], "eval_every"))
         threshold = cells[0].runs[0]["threshold"]
-        lines += [
-            f"## {env} (threshold {threshold:g}, evaluation every {eval_every} steps)",
-            "",
-            *table_rows(cells),
-            "",
-            f"![{env} learning curves]({curve_filename(env)})",
-            "",
-        ]
-        plot_curves(env, cells, out_dir / curve_filename(env))
+        current = current_cells(cells_by_env, env)
+        earlier = [cell for cell in cells if cell.earlier_config]
+        lines += [f"## {env} (threshold {threshold:g}, evaluation every {eval_every} steps)", ""]
+        if current:
+            lines += [*table_rows(current), "", f"![{env} learning curves]({curve_filename(env)})", ""]
+            plot_curves(env, current, out_dir / curve_filename(env))
+        if earlier:
+            lines += [
+                "Runs of an earlier config of an algorithm, one that `benchmarks/configs.py` has since replaced (kept "
+                "in the results file; not used for the targets or the plot):",
+                "",
+                *table_rows(earlier),
+                "",
+            ]
     text = "\n".join(lines)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "README.md").write_text(text)

@@ -334,6 +334,39 @@ def test_report_labels_tell_apart_cells_of_one_algorithm(results_file: Path) -> 
     assert labels == ["nfq-book (stopped at solve)", "nfq-book (to the budget)"]
 
 
+def test_report_keeps_runs_of_an_earlier_config_out_of_the_targets(results_file: Path, tmp_path: Path) -> None:
+    records = _lines(results_file)
+
+    def five_solved(algo: str, like: str) -> list[dict[str, Any]]:
+        first = next(record for record in records if record["algo"] == like)
+        return [dict(first, algo=algo, seed=seed, solved=True, steps_to_solve=1024) for seed in range(5)]
+
+    # nfq-book's runs recorded as nfq-tuned: as if nfq-tuned had once been the book's settings, since replaced
+    earlier = five_solved("nfq-tuned", like="nfq-book")
+    dqn = five_solved("dqn-zoo", like="dqn-zoo")
+    cells = report.build_cells([*earlier, *dqn])
+    tuned = next(cell for cell in cells["CartPole-v1"] if cell.algo == "nfq-tuned")
+    assert tuned.earlier_config and tuned.now_config_of == "nfq-book"
+    assert tuned.label == "nfq-tuned (earlier config, now nfq-book's)"
+    assert report.ratio_target(cells, "CartPole-v1", "nfq-tuned", "dqn-zoo", 0.0, 0.75)[0] == "not enough data"
+    # the same runs recorded with nfq-tuned's current config are judged (ratio 1: not met)
+    current = report.current_config("nfq-tuned", "CartPole-v1")
+    assert current is not None and current != {}
+    now = [dict(record, config=current, config_hash="now") for record in earlier]
+    assert (
+        report.ratio_target(report.build_cells([*now, *dqn]), "CartPole-v1", "nfq-tuned", "dqn-zoo", 0.0, 0.75)[0]
+        == "not met"
+    )
+
+    path = tmp_path / "runs.jsonl"
+    path.write_text("".join(json.dumps(record) + "\n" for record in [*earlier, *dqn]))
+    assert report.main(["--results", str(path), "--out-dir", str(tmp_path / "report")]) == 0
+    text = (tmp_path / "report" / "README.md").read_text()
+    table_of_earlier = text.split("Runs of an earlier config")[1]
+    assert "| nfq-tuned (earlier config, now nfq-book's) | 5 |" in table_of_earlier
+    assert "| dqn-zoo | 5 |" in text and "| dqn-zoo | 5 |" not in table_of_earlier
+
+
 def test_report_judges_targets_from_runner_data(results_file: Path) -> None:
     # Five seeds of the same runs under both names: the ratio of medians is exactly 1, so the ±25% target is met.
     records = _lines(results_file)

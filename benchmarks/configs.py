@@ -91,11 +91,18 @@ GROWING_MEMORY_CONFIG: dict[str, Any] = {
 NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
     # The textbook settings, i.e. NFQ's defaults, on every env.
     "nfq-book": {ALL_ENVS: {}},
-    # One tuned config per env. CartPole-v1: GROWING_MEMORY_CONFIG with the Zoo's DQN budget. The others: the
-    # winner of benchmarks/tune_nfq.py's sweep on that env (tuning seeds 100-101, results in
-    # benchmarks/results/tuning_per_env.jsonl).
+    # One tuned config per env: the winner of benchmarks/tune_nfq.py's sweep on that env (tuning seeds 100-102 on
+    # CartPole, 100-101 elsewhere; results in benchmarks/results/tuning_per_env.jsonl).
     "nfq-tuned": {
-        "CartPole-v1": {**GROWING_MEMORY_CONFIG, "n_timesteps": ZOO_DQN_BUDGETS["CartPole-v1"]},
+        # "shared-256x256-lr-2.3e-3-rounds-128": GROWING_MEMORY_CONFIG with the Zoo DQN's network and learning rate
+        # (256-256, 2.3e-3), refitted every 128 steps instead of 256.
+        "CartPole-v1": {
+            **GROWING_MEMORY_CONFIG,
+            "learning_rate": 2.3e-3,
+            "policy_kwargs": "dict(net_arch=[256, 256], optimizer_class=th.optim.Adam)",
+            "train_freq": 128,
+            "n_timesteps": ZOO_DQN_BUDGETS["CartPole-v1"],
+        },
         # "book-eps-1-to-0.05": the textbook NFQ, with epsilon decaying 1 -> 0.05 over the first 30k steps.
         "Acrobot-v1": {"exploration_initial_eps": 1.0, "exploration_final_eps": 0.05, "exploration_fraction": 0.1},
         # "shared-memory-10k-gamma-0.98": GROWING_MEMORY_CONFIG with the Zoo DQN's MountainCar memory and discount.

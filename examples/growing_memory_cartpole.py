@@ -19,9 +19,12 @@ from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_nfq import NFQ
 
-#: The sample-efficient settings measured in benchmarks/ ("nfq-tuned" on CartPole-v1, found by
-#: benchmarks/tune_nfq_cartpole.py): every transition kept, a round every 256 steps, 8 minibatch iterations per
-#: round against targets fixed for the round, Adam, exploration decaying from 1 to 0.04 over the first 16%.
+#: The growing-memory settings measured in benchmarks/ ("nfq-shared", the one config run unchanged on all four envs;
+#: found on CartPole-v1 by benchmarks/tune_nfq_cartpole.py): every transition kept, a round every 256 steps, 8
+#: minibatch iterations per round against targets fixed for the round, Adam, a 64-64 network, exploration decaying
+#: from 1 to 0.04 over the first 16%. benchmarks/ "nfq-tuned" on CartPole-v1 adds a 256-256 network, lr 2.3e-3 and a
+#: round every 128 steps: fewer env steps to solve, for more fitting work per env step (training seconds of both in
+#: benchmarks/results/README.md).
 GROWING_MEMORY_NFQ: dict[str, Any] = {
     "memory": "growing",
     "target_mode": "fixed_per_iteration",

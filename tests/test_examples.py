@@ -72,5 +72,5 @@ def test_growing_memory_example_uses_the_benchmarked_config() -> None:
     from benchmarks import configs, run
 
     example_config = runpy.run_path(str(EXAMPLES / "growing_memory_cartpole.py"))["GROWING_MEMORY_NFQ"]
-    benchmarked = run.sb3_kwargs(configs.resolve("nfq-tuned", "CartPole-v1").kwargs)
+    benchmarked = run.sb3_kwargs(configs.resolve("nfq-shared", "CartPole-v1").kwargs)
     assert example_config == benchmarked

@@ -255,16 +255,23 @@ def _distinct_label(cell: Cell, same_algo: Sequence[Cell]) -> str:
 
 
 def primary_cell(
-    cells_by_env: dict[str, list[Cell]], env: str, algo: str, eval_every: int | None = None
+    cells_by_env: dict[str, list[Cell]],
+    env: str,
+    algo: str,
+    eval_every: int | None = None,
+    to_the_budget: bool = False,
 ) -> Cell | None:
     """
     :param eval_every: only cells evaluated with this period (default: any)
+    :param to_the_budget: only cells whose runs trained on to the budget (not stopped at the solve)
     :return: the cell of ``algo`` on ``env`` with the most seeds, if any
     """
     cells = [
         cell
         for cell in current_cells(cells_by_env, env)
-        if cell.algo == algo and (eval_every is None or cell.eval_every == eval_every)
+        if cell.algo == algo
+        and (eval_every is None or cell.eval_every == eval_every)
+        and not (to_the_budget and cell.stop_at_solve)
     ]
     return max(cells, key=lambda cell: cell.n) if cells else None
 
@@ -411,10 +418,13 @@ def shared_target(cells_by_env: dict[str, list[Cell]]) -> tuple[str, str]:
 def final_score_target(
     cells_by_env: dict[str, list[Cell]], env: str, algo: str, eval_every: int | None = None
 ) -> tuple[str, str]:
-    """:return: (verdict, text) for "final score >= threshold in >= 4/5 seeds" """
-    cell = primary_cell(cells_by_env, env, algo, eval_every)
+    """
+    :return: (verdict, text) for "final score at the budget >= threshold in >= 4/5 seeds", judged on runs that
+        trained on to the budget (a run stopped at its solve says nothing of staying solved)
+    """
+    cell = primary_cell(cells_by_env, env, algo, eval_every, to_the_budget=True)
     if cell is None or cell.n < MIN_SEEDS:
-        return "not enough data", f"needs {MIN_SEEDS} seeds ({cell.n if cell else 0})"
+        return "not enough data", f"needs {MIN_SEEDS} seeds run to the budget ({cell.n if cell else 0})"
     scores = cell.final_scores()
     threshold = cell.runs[0]["threshold"]
     passed = int((scores >= threshold).sum())

@@ -367,6 +367,24 @@ def test_report_keeps_runs_of_an_earlier_config_out_of_the_targets(results_file:
     assert "| dqn-zoo | 5 |" in text and "| dqn-zoo | 5 |" not in table_of_earlier
 
 
+def test_report_judges_staying_solved_only_on_runs_trained_to_the_budget(results_file: Path) -> None:
+    first = next(record for record in _lines(results_file) if record["algo"] == "nfq-book")
+    to_budget = [dict(first, seed=seed, solved=True, steps_to_solve=512, final_score=480.0) for seed in range(2)]
+    # five more seeds, stopped at their solve: a final score taken at the solve says nothing of staying solved
+    stopped = [
+        dict(first, seed=seed, solved=True, steps_to_solve=512, final_score=480.0, stop_at_solve=True, config_hash="s")
+        for seed in range(5)
+    ]
+    cells = report.build_cells([*to_budget, *stopped])
+    verdict, text = report.final_score_target(cells, "CartPole-v1", "nfq-book")
+    assert verdict == "not enough data" and "run to the budget (2)" in text
+    more = [dict(first, seed=seed, solved=True, steps_to_solve=512, final_score=480.0) for seed in range(2, 5)]
+    verdict, text = report.final_score_target(
+        report.build_cells([*to_budget, *more, *stopped]), "CartPole-v1", "nfq-book"
+    )
+    assert verdict == "met" and text.startswith("5/5 seeds")
+
+
 def test_report_judges_targets_from_runner_data(results_file: Path) -> None:
     # Five seeds of the same runs under both names: the ratio of medians is exactly 1, so the ±25% target is met.
     records = _lines(results_file)

@@ -6,8 +6,10 @@ Turn the runner's JSON lines into ``benchmarks/results/README.md`` and learning-
 Per env and algorithm: seeds, success rate, steps to solve (median and IQR; IQM with a 95% stratified-bootstrap
 CI from ``rliable``), final greedy score at the budget, training seconds. Runs that never solved count as their
 number of trained steps (censored): a statistic that reaches a censored value is a lower bound, shown as ``≥``.
-Then the project's targets, each "met", "not met" or "not enough data", and one PNG of learning curves per env
-(mean greedy return over seeds with a 95% bootstrap band).
+Then the project's targets, each "met", "not met" or "not enough data" (staying solved is judged only on runs trained
+on to the budget), and one PNG of learning curves per env (mean greedy return over seeds with a 95% bootstrap band).
+Runs of a config that ``benchmarks/configs.py`` has since replaced get a table of their own under their env, and are
+left out of the targets and the plots.
 """
 
 import argparse

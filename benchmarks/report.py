@@ -204,15 +204,16 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     for record in records:
         grouped[(record["env"], record["algo"], int(record["budget"]), record["config_hash"])][record["seed"]] = record
     by_env: dict[str, list[Cell]] = defaultdict(list)
+    current_by_env: dict[str, dict[str, dict[str, Any] | None]] = {}  # env -> algo -> its current config there
     for (env, algo, budget, config_hash), runs in grouped.items():
         cell = Cell(env, algo, budget, config_hash, [runs[seed] for seed in sorted(runs)])
+        if env not in current_by_env:
+            current_by_env[env] = {name: current_config(name, env) for name in configs.algorithm_names()}
+        current = current_by_env[env].get(algo)
         recorded = cell.runs[0].get("config")
-        current = current_config(algo, env)
         if current is not None and recorded != current:
             cell.earlier_config = True
-            cell.now_config_of = next(
-                (other for other in configs.algorithm_names() if current_config(other, env) == recorded), None
-            )
+            cell.now_config_of = next((name for name, now in current_by_env[env].items() if now == recorded), None)
         by_env[env].append(cell)
     env_order: dict[str, int] = {}
     for env in [*configs.ENVS, *sorted(by_env)]:

@@ -29,6 +29,8 @@ from torch import nn
 from torch.nn import functional as F
 
 RoundCallback = Callable[["ReferenceNFQ"], bool]
+#: Called after each training episode ends, with the agent; returning False stops training there (the book's loop).
+EpisodeCallback = Callable[["ReferenceNFQ"], bool]
 
 
 @dataclass(frozen=True)
@@ -142,6 +144,9 @@ class ReferenceNFQ:
 
         self.num_timesteps = 0
         self.n_rounds = 0
+        self.n_episodes = 0
+        #: Set when an episode callback asked to stop training.
+        self.stop_requested = False
         self.last_losses = th.zeros(0)
         self._obs, _ = self.env.reset(seed=seed)
 
@@ -178,11 +183,13 @@ class ReferenceNFQ:
 
     # --- one round --------------------------------------------------------------------------------------------
 
-    def collect_round(self) -> Transitions:
+    def collect_round(self, episode_callback: EpisodeCallback | None = None) -> Transitions:
         """
         Step the environment ``transitions_per_round`` times with the epsilon-greedy policy.
 
-        :return: the transitions, in collection order
+        :param episode_callback: called after each episode that ends; returning False stops collecting
+        :return: the transitions, in collection order (fewer if ``episode_callback`` stopped the round: then
+            ``stop_requested`` is set)
         """
         obs, actions, rewards, next_obs, terminated = [], [], [], [], []
         for _ in range(self.transitions_per_round):
@@ -194,9 +201,13 @@ class ReferenceNFQ:
             next_obs.append(next_observation)  # the true s', also at a truncation
             terminated.append(float(is_terminated))
             self._obs = next_observation
+            self.num_timesteps += 1
             if is_terminated or is_truncated:
                 self._obs, _ = self.env.reset()
-        self.num_timesteps += self.transitions_per_round
+                self.n_episodes += 1
+                if episode_callback is not None and not episode_callback(self):
+                    self.stop_requested = True
+                    break
         # th.tensor copies into torch-allocated memory, as SB3's buffer.to_torch does: both fit on alike tensors.
         return Transitions(
             observations=th.tensor(np.asarray(obs, dtype=np.float32)),
@@ -215,16 +226,26 @@ class ReferenceNFQ:
         self.n_rounds += 1
         return self.last_losses
 
-    def learn(self, total_timesteps: int, callback: RoundCallback | None = None) -> "ReferenceNFQ":
+    def learn(
+        self,
+        total_timesteps: int,
+        callback: RoundCallback | None = None,
+        episode_callback: EpisodeCallback | None = None,
+    ) -> "ReferenceNFQ":
         """
         Train in whole rounds until at least ``total_timesteps`` environment steps were taken.
 
         :param total_timesteps: environment-step budget (the last round is completed, so it may be exceeded)
         :param callback: called after each round (collect then fit) with this agent; returning False stops training
+        :param episode_callback: called after each training episode ends, with this agent; returning False stops
+            training at once (the round under way is not fitted)
         :return: this agent
         """
         while self.num_timesteps < total_timesteps:
-            self.fit(self.collect_round())
+            batch = self.collect_round(episode_callback)
+            if self.stop_requested:  # the book stops at an episode's end, leaving the unfinished round unfitted
+                break
+            self.fit(batch)
             if callback is not None and not callback(self):
                 break
         return self

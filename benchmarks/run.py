@@ -2,8 +2,8 @@
 Benchmark runner: train (algorithm config x env x seed) jobs and append one JSON line per finished job.
 
     python -m benchmarks.run [--algos nfq-book reference-nfq dqn-zoo] [--envs CartPole-v1 ...] [--seeds 0-4]
-        [--budget N] [--eval-every N] [--stop-at-solve] [--workers 2] [--results benchmarks/results/runs.jsonl]
-        [--ray-address local|auto|ray://host:10001] [--dry-run]
+        [--budget N] [--eval-every N] [--stop-at-solve] [--protocol rounds|book] [--workers 2]
+        [--results benchmarks/results/runs.jsonl] [--ray-address local|auto|ray://host:10001] [--dry-run]
 
 Criterion, the same for every algorithm: after each NFQ round (each reference round; for DQN at the first rollout
 start at or after each multiple of ``eval_every`` env steps), the greedy policy plays ``N_EVAL_EPISODES`` = 100
@@ -11,6 +11,11 @@ episodes on separate envs (fixed episode seeds, the same at every evaluation of 
 batched forward pass per step. The job is "solved" at the first evaluation whose mean return reaches the env's
 threshold; training goes on to the budget (unless ``--stop-at-solve``), then 100 new greedy episodes give the
 final score.
+
+``--protocol book`` uses the criterion of the book's own code instead (:class:`sb3_nfq.BookCriterion`): after every
+training episode the greedy policy plays one episode on a separate env (its first reset seeded with
+``CURVE_SEED_BASE + 1000 * seed``); the job is solved, and stops, when the mean of the last 100 of those returns
+reaches the threshold. Its records go to ``benchmarks/results/book_protocol.jsonl`` by default.
 
 Timing: each job runs in its own process (spawned; or as a Ray task with ``num_cpus=1``) with
 ``torch.set_num_threads(1)``, and at most as many jobs run at once as there are cores. ``train_seconds`` is the
@@ -47,12 +52,18 @@ import torch as th
 from torch import nn
 
 from benchmarks import configs
+from sb3_nfq.callbacks import StopTrainingOnBookCriterion
 
 if TYPE_CHECKING:
     from stable_baselines3.common.vec_env import VecEnv
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_RESULTS = REPO_ROOT / "benchmarks" / "results" / "runs.jsonl"
+DEFAULT_BOOK_RESULTS = REPO_ROOT / "benchmarks" / "results" / "book_protocol.jsonl"
+#: Evaluation protocols: "rounds" (100 greedy episodes after each round, the benchmark's), "book" (one greedy
+#: episode after each training episode, solved at the mean of the last BOOK_WINDOW, the book's code).
+PROTOCOLS = ("rounds", "book")
+BOOK_WINDOW = 100
 #: Bumped when the evaluation protocol changes, so that old results do not count as done.
 PROTOCOL_VERSION = 1
 #: Episode seeds: the learning-curve evaluations of seed s use CURVE_SEED_BASE + 1000 * s + i for episode i,
@@ -142,6 +153,7 @@ class Job:
     :param eval_every: evaluation period in env steps
     :param n_eval_episodes: greedy episodes per evaluation
     :param stop_at_solve: stop training at the first solved evaluation
+    :param protocol: ``"rounds"`` or ``"book"`` (see :data:`PROTOCOLS`; the book's protocol always stops at solve)
     :param placeholder: whether the config is a placeholder
     :param source: where the config comes from
     :param command: the runner command that created the job
@@ -158,6 +170,7 @@ class Job:
     eval_every: int
     n_eval_episodes: int = configs.N_EVAL_EPISODES
     stop_at_solve: bool = False
+    protocol: str = "rounds"
     placeholder: bool = False
     source: str = ""
     command: str = ""
@@ -166,7 +179,7 @@ class Job:
     @property
     def config_hash(self) -> str:
         """:return: a short hash of everything but the seed and budget that changes what the job measures"""
-        payload = {
+        payload: dict[str, Any] = {
             "kind": self.kind,
             "kwargs": self.kwargs,
             "threshold": self.threshold,
@@ -175,6 +188,8 @@ class Job:
             "stop_at_solve": self.stop_at_solve,
             "protocol": PROTOCOL_VERSION,
         }
+        if self.protocol != "rounds":  # the benchmark's own protocol keeps the hashes of the runs it has recorded
+            payload["criterion"] = self.protocol
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:12]
 
     @property
@@ -192,6 +207,7 @@ def make_jobs(
     n_eval_episodes: int = configs.N_EVAL_EPISODES,
     stop_at_solve: bool = False,
     command: str = "",
+    protocol: str = "rounds",
 ) -> list[Job]:
     """
     :param algos: algorithm config names
@@ -202,8 +218,11 @@ def make_jobs(
     :param n_eval_episodes: greedy episodes per evaluation
     :param stop_at_solve: stop each job at its first solved evaluation
     :param command: the command line, recorded with each result
+    :param protocol: ``"rounds"`` or ``"book"`` (then every job stops at its solve)
     :return: the jobs, algorithm-major
     """
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"protocol must be one of {list(PROTOCOLS)}, got {protocol!r}")
     git = git_revision()
     jobs = []
     for algo in algos:
@@ -221,7 +240,8 @@ def make_jobs(
                         threshold=config.threshold,
                         eval_every=eval_every if eval_every is not None else config.eval_every,
                         n_eval_episodes=n_eval_episodes,
-                        stop_at_solve=stop_at_solve,
+                        stop_at_solve=stop_at_solve or protocol == "book",
+                        protocol=protocol,
                         placeholder=config.placeholder,
                         source=config.source,
                         command=command,
@@ -460,7 +480,23 @@ def make_training_env(env_id: str, n_envs: int, seed: int) -> "VecEnv":
     return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs={"render_mode": None})
 
 
-def _train_sb3(job: Job, tracker: SolveTracker) -> Trained:
+def book_curve(callback: StopTrainingOnBookCriterion, every: int) -> list[list[float]]:
+    """
+    :param callback: the book protocol's evaluations of one job
+    :param every: keep the first evaluation at or after each multiple of this many env steps, and the last
+    :return: ``[steps, mean of the last BOOK_WINDOW evaluation returns]`` at those evaluations
+    """
+    criterion, curve = callback.criterion, []
+    next_point = 0
+    for index, steps in enumerate(criterion.evaluation_steps):
+        if steps >= next_point or index == len(criterion.evaluation_steps) - 1:
+            window = criterion.evaluation_returns[max(0, index + 1 - criterion.window) : index + 1]
+            curve.append([steps, float(np.mean(window))])
+            next_point = (steps // every + 1) * every
+    return curve
+
+
+def _train_sb3(job: Job, tracker: SolveTracker | StopTrainingOnBookCriterion) -> Trained:
     from stable_baselines3 import DQN
 
     from sb3_nfq import NFQ, NFQDivergenceError
@@ -478,7 +514,8 @@ def _train_sb3(job: Job, tracker: SolveTracker) -> Trained:
     start = time.perf_counter()
     diverged = None
     try:
-        model.learn(job.budget, callback=_round_end_callback(tracker, act))
+        callback = tracker if isinstance(tracker, StopTrainingOnBookCriterion) else _round_end_callback(tracker, act)
+        model.learn(job.budget, callback=callback)
     except NFQDivergenceError as error:  # a result like any other: recorded, not retried
         diverged = str(error)
     learn_seconds = time.perf_counter() - start
@@ -507,14 +544,23 @@ def _train_sb3(job: Job, tracker: SolveTracker) -> Trained:
     return Trained(model.num_timesteps, act, learn_seconds, effective, diverged)
 
 
-def _train_reference(job: Job, tracker: SolveTracker) -> Trained:
+def _train_reference(job: Job, tracker: SolveTracker | StopTrainingOnBookCriterion) -> Trained:
     from benchmarks.reference_nfq import ReferenceNFQ
 
     agent = ReferenceNFQ(job.env_id, seed=job.seed, **job.kwargs)
-    start = time.perf_counter()  # includes the evaluation at step 0, as SB3's learn() does
-    tracker.maybe_evaluate(0, agent.act)
-    agent.learn(job.budget, callback=lambda trained: tracker.maybe_evaluate(trained.num_timesteps, trained.act))
-    tracker.finish(agent.num_timesteps, agent.act)
+    start = time.perf_counter()
+    if isinstance(tracker, StopTrainingOnBookCriterion):
+        criterion = tracker.criterion
+
+        def after_episode(trained: ReferenceNFQ) -> bool:
+            holds = criterion.on_training_episode_end(trained.num_timesteps, lambda obs: int(trained.act(obs[None])[0]))
+            return not holds
+
+        agent.learn(job.budget, episode_callback=after_episode)
+    else:  # includes the evaluation at step 0, as SB3's learn() does
+        tracker.maybe_evaluate(0, agent.act)
+        agent.learn(job.budget, callback=lambda trained: tracker.maybe_evaluate(trained.num_timesteps, trained.act))
+        tracker.finish(agent.num_timesteps, agent.act)
     learn_seconds = time.perf_counter() - start
     effective = {
         "gamma": agent.gamma,
@@ -539,11 +585,41 @@ def run_job(job: Job) -> dict[str, Any]:
     wall_start = time.perf_counter()
     th.set_num_threads(1)
     curve_seed, final_seed = CURVE_SEED_BASE + 1000 * job.seed, FINAL_SEED_BASE + 1000 * job.seed
-    tracker = SolveTracker(
-        GreedyEvaluator(job.env_id, job.n_eval_episodes, curve_seed), job.threshold, job.eval_every, job.stop_at_solve
-    )
+    tracker: SolveTracker | StopTrainingOnBookCriterion
+    if job.protocol == "book":
+        tracker = StopTrainingOnBookCriterion(
+            gym.make(job.env_id), threshold=job.threshold, window=BOOK_WINDOW, seed=curve_seed
+        )
+    else:
+        tracker = SolveTracker(
+            GreedyEvaluator(job.env_id, job.n_eval_episodes, curve_seed),
+            job.threshold,
+            job.eval_every,
+            job.stop_at_solve,
+        )
     trained = (_train_reference if job.kind == "reference" else _train_sb3)(job, tracker)
     final_returns = GreedyEvaluator(job.env_id, job.n_eval_episodes, final_seed).evaluate(trained.act)
+    if isinstance(tracker, StopTrainingOnBookCriterion):
+        criterion = tracker.criterion
+        outcome: dict[str, Any] = {
+            "protocol": "book",
+            "book_window": criterion.window,
+            "solved": criterion.solved,
+            "steps_to_solve": criterion.steps_to_solve,
+            "episodes_to_solve": criterion.episodes_to_solve,
+            "episodes_trained": len(criterion.evaluation_returns),
+            "stopped_at_solve": criterion.solved,
+            "eval_seconds": criterion.eval_seconds,
+            "curve": book_curve(tracker, job.eval_every),
+        }
+    else:
+        outcome = {
+            "solved": tracker.steps_to_solve is not None,
+            "steps_to_solve": tracker.steps_to_solve,
+            "stopped_at_solve": tracker.stopped,
+            "eval_seconds": tracker.eval_seconds,
+            "curve": tracker.curve,
+        }
     return {
         "algo": job.algo,
         "env": job.env_id,
@@ -560,18 +636,16 @@ def run_job(job: Job) -> dict[str, Any]:
         "eval_every": job.eval_every,
         "eval_seeds": {"curve": curve_seed, "final": final_seed},
         "stop_at_solve": job.stop_at_solve,
-        "solved": tracker.steps_to_solve is not None,
-        "steps_to_solve": tracker.steps_to_solve,
+        **{key: value for key, value in outcome.items() if key not in ("eval_seconds", "curve")},
         "steps_trained": trained.steps,
-        "stopped_at_solve": tracker.stopped,
         "diverged": trained.diverged,
         "final_score": float(np.mean(final_returns)),
         "final_score_std": float(np.std(final_returns)),
         "final_n_episodes": len(final_returns),
-        "train_seconds": round(trained.learn_seconds - tracker.eval_seconds, 3),
-        "eval_seconds": round(tracker.eval_seconds, 3),
+        "train_seconds": round(trained.learn_seconds - outcome["eval_seconds"], 3),
+        "eval_seconds": round(outcome["eval_seconds"], 3),
         "wall_seconds": round(time.perf_counter() - wall_start, 3),
-        "curve": [[int(steps), round(mean, 3)] for steps, mean in tracker.curve],
+        "curve": [[int(steps), round(mean, 3)] for steps, mean in outcome["curve"]],
         "torch_threads": th.get_num_threads(),
         "versions": package_versions(),
         "machine": machine_line(),
@@ -588,6 +662,8 @@ def run_job(job: Job) -> dict[str, Any]:
 
 def _describe(record: dict[str, Any]) -> str:
     solved = f"solved at {record['steps_to_solve']}" if record["solved"] else "not solved"
+    if record.get("episodes_to_solve") is not None:
+        solved += f" ({record['episodes_to_solve']} episodes)"
     if record.get("diverged"):
         solved += ", then the loss diverged" if record["solved"] else ", the loss diverged"
     return (
@@ -732,17 +808,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--stop-at-solve", action="store_true", help="stop each job when solved (quick runs)")
     parser.add_argument(
+        "--protocol",
+        choices=PROTOCOLS,
+        default="rounds",
+        help="rounds: 100 greedy episodes after each round (default); book: one greedy episode after each training "
+        "episode, solved (and stopped) at the mean of the last 100 (the book's code)",
+    )
+    parser.add_argument(
         "--workers",
         type=int,
         default=min(2, usable_cores()),
         help="local worker processes, one job each (default: min(2, cores); 0: run in this process)",
     )
-    parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="JSON-lines results file")
+    parser.add_argument(
+        "--results",
+        type=Path,
+        help="JSON-lines results file (default: runs.jsonl; book_protocol.jsonl with --protocol book)",
+    )
     parser.add_argument("--ray-address", help="run the jobs as Ray tasks: 'local', 'auto' or a cluster address")
     parser.add_argument("--dry-run", action="store_true", help="list the jobs to run and exit")
     args = parser.parse_args(argv)
     if args.workers < 0:
         parser.error("--workers must be >= 0")
+    if args.results is None:
+        args.results = DEFAULT_BOOK_RESULTS if args.protocol == "book" else DEFAULT_RESULTS
 
     command = shlex.join(["python", "-m", "benchmarks.run", *argv])
     jobs = make_jobs(
@@ -754,6 +843,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         n_eval_episodes=args.eval_episodes,
         stop_at_solve=args.stop_at_solve,
         command=command,
+        protocol=args.protocol,
     )
     if args.dry_run:
         done = {result_key(record) for record in read_results(args.results)}

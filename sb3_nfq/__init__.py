@@ -1,5 +1,6 @@
 """sb3-nfq: Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 algorithm."""
 
+from sb3_nfq.callbacks import BookCriterion, StopTrainingOnBookCriterion
 from sb3_nfq.nfq import NFQ, NFQDivergenceError
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy
@@ -8,11 +9,13 @@ __version__ = "0.1.0"
 
 __all__ = [
     "NFQ",
+    "BookCriterion",
     "CnnPolicy",
     "MlpPolicy",
     "MultiInputPolicy",
     "NFQDivergenceError",
     "NFQPolicy",
+    "StopTrainingOnBookCriterion",
     "TransitionDataset",
     "__version__",
 ]

@@ -1,0 +1,163 @@
+"""
+The book's definition of "solved", as an SB3 callback.
+
+"Grokking Deep Reinforcement Learning" trains its value-based agents episode by episode: after *every* training
+episode the greedy policy plays *one* evaluation episode, and training stops once the mean of the last 100
+evaluation returns reaches the goal (475 on CartPole-v1). :class:`BookCriterion` is that bookkeeping, with no SB3
+in it; :class:`StopTrainingOnBookCriterion` drives it from any SB3 algorithm's ``learn()``.
+"""
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+#: A greedy policy for one observation: observation -> action.
+GreedyAct = Callable[[Any], Any]
+
+
+class BookCriterion:
+    """
+    One greedy evaluation episode per training episode; solved when the mean of the last ``window`` evaluation
+    returns reaches ``threshold``. As in the book's code, the mean is over all evaluations while there are fewer
+    than ``window`` of them.
+
+    :param eval_env: the env the evaluation episodes are played on (kept apart from the training env)
+    :param threshold: the goal for the mean evaluation return (the book: 475 on CartPole-v1)
+    :param window: how many of the latest evaluation returns are averaged (the book: 100)
+    :param seed: seeds the evaluation env's first reset; later episodes go on from its random stream
+    """
+
+    def __init__(self, eval_env: gym.Env, threshold: float = 475.0, window: int = 100, seed: int | None = None) -> None:
+        if not isinstance(window, int) or isinstance(window, bool) or window <= 0:
+            raise ValueError(f"window must be a positive integer (evaluation returns averaged), got {window!r}")
+        if not np.isfinite(threshold):
+            raise ValueError(f"threshold must be a finite number, got {threshold!r}")
+        self.eval_env = eval_env
+        self.threshold = float(threshold)
+        self.window = window
+        self._seed = seed
+        #: Return of each evaluation episode, one per training episode so far.
+        self.evaluation_returns: list[float] = []
+        #: Env steps trained when each evaluation was played.
+        self.evaluation_steps: list[int] = []
+        #: Env steps and training episodes at the first evaluation where the criterion held (``None``: not yet).
+        self.steps_to_solve: int | None = None
+        self.episodes_to_solve: int | None = None
+        #: Seconds spent playing evaluation episodes (to subtract from training time, as the book does).
+        self.eval_seconds = 0.0
+
+    @property
+    def solved(self) -> bool:
+        """:return: whether the criterion has held at some evaluation"""
+        return self.steps_to_solve is not None
+
+    @property
+    def mean_return(self) -> float:
+        """:return: the mean of the last ``window`` evaluation returns (NaN before the first)"""
+        if not self.evaluation_returns:
+            return float("nan")
+        return float(np.mean(self.evaluation_returns[-self.window :]))
+
+    def play_episode(self, act: GreedyAct) -> float:
+        """
+        :param act: the greedy policy, one observation in, one action out
+        :return: the undiscounted return of one episode on the evaluation env
+        """
+        obs, _ = self.eval_env.reset(seed=self._seed)
+        self._seed = None
+        episode_return, done = 0.0, False
+        while not done:
+            obs, reward, terminated, truncated, _ = self.eval_env.step(act(obs))
+            episode_return += float(reward)
+            done = terminated or truncated
+        return episode_return
+
+    def on_training_episode_end(self, steps: int, act: GreedyAct) -> bool:
+        """
+        Play the evaluation episode that follows a training episode, and check the criterion.
+
+        :param steps: env steps trained so far
+        :param act: the greedy policy
+        :return: whether the criterion holds now
+        """
+        start = time.perf_counter()
+        self.evaluation_returns.append(self.play_episode(act))
+        self.evaluation_steps.append(steps)
+        self.eval_seconds += time.perf_counter() - start
+        holds = self.mean_return >= self.threshold
+        if holds and not self.solved:
+            self.steps_to_solve, self.episodes_to_solve = steps, len(self.evaluation_returns)
+        return holds
+
+
+class StopTrainingOnBookCriterion(BaseCallback):
+    """
+    The book's criterion for any SB3 algorithm: after each training episode that ends (in any of the training
+    envs), the greedy policy (``predict(deterministic=True)``) plays one episode on ``eval_env``; training stops
+    once the mean of the last ``window`` of those returns reaches ``threshold``. The evaluation episodes are not
+    counted as training steps. Logs ``eval/book_mean_return`` and ``eval/book_episodes``.
+
+    The greedy policy sees ``eval_env``'s raw observations: do not use it with ``VecNormalize`` training envs.
+
+    .. code-block:: python
+
+        model = NFQ("MlpPolicy", "CartPole-v1", seed=12)
+        book = StopTrainingOnBookCriterion(gym.make("CartPole-v1"), threshold=475, seed=12)
+        model.learn(500_000, callback=book)
+        print(book.criterion.steps_to_solve, book.criterion.episodes_to_solve)
+
+    :param eval_env: the evaluation env, or an env id (made with ``gym.make``, no render mode)
+    :param threshold: the goal for the mean evaluation return (the book: 475 on CartPole-v1)
+    :param window: how many of the latest evaluation returns are averaged (the book: 100)
+    :param stop_at_solve: stop training when the criterion first holds (the book does); ``False`` keeps training
+        and keeps evaluating
+    :param seed: seeds the evaluation env's first reset
+    :param verbose: 1 prints the solve
+    """
+
+    def __init__(
+        self,
+        eval_env: gym.Env | str,
+        threshold: float = 475.0,
+        window: int = 100,
+        stop_at_solve: bool = True,
+        seed: int | None = None,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(verbose)
+        if isinstance(eval_env, str):
+            eval_env = gym.make(eval_env)
+        if not isinstance(eval_env, gym.Env):
+            raise ValueError(
+                f"eval_env must be a gymnasium.Env or an env id (one env: one episode per training episode), "
+                f"got {type(eval_env).__name__}"
+            )
+        self.criterion = BookCriterion(eval_env, threshold=threshold, window=window, seed=seed)
+        self.stop_at_solve = stop_at_solve
+
+    def _act(self, observation: Any) -> Any:
+        action, _ = self.model.predict(observation, deterministic=True)
+        return action.item() if isinstance(action, np.ndarray) and action.size == 1 else action
+
+    def _on_step(self) -> bool:
+        keep_training = True
+        for done in np.asarray(self.locals["dones"]).reshape(-1):
+            if not done:
+                continue
+            solved_before = self.criterion.solved
+            holds = self.criterion.on_training_episode_end(self.num_timesteps, self._act)
+            self.logger.record("eval/book_mean_return", self.criterion.mean_return)
+            self.logger.record("eval/book_episodes", len(self.criterion.evaluation_returns))
+            if self.criterion.solved and not solved_before and self.verbose >= 1:
+                print(
+                    f"Book criterion met after {self.criterion.episodes_to_solve} episodes, "
+                    f"{self.criterion.steps_to_solve} steps: mean of the last {self.criterion.window} "
+                    f"evaluation returns {self.criterion.mean_return:.1f} >= {self.criterion.threshold:g}"
+                )
+            if holds and self.stop_at_solve:
+                keep_training = False
+        return keep_training

@@ -277,6 +277,44 @@ def test_a_diverged_nfq_run_is_recorded_as_unsolved_with_the_error() -> None:
     json.dumps(record)  # still one valid JSON line
 
 
+def test_reference_episode_callback_stops_at_an_episode_end_without_fitting_the_unfinished_round() -> None:
+    agent = ReferenceNFQ("CartPole-v1", seed=0, transitions_per_round=256, fitting_iterations=2)
+    ends: list[int] = []
+
+    def after_episode(trained: ReferenceNFQ) -> bool:
+        ends.append(trained.num_timesteps)
+        return len(ends) < 3
+
+    agent.learn(10_000, episode_callback=after_episode)
+    assert len(ends) == 3 and ends[0] < ends[1] < ends[2] == agent.num_timesteps
+    assert agent.n_episodes == 3 and agent.stop_requested
+    assert agent.n_rounds == ends[2] // 256  # only whole rounds were fitted
+
+
+@pytest.mark.parametrize("algo", ["nfq-book", "reference-nfq"])
+def test_runner_book_protocol_evaluates_after_every_training_episode(algo: str) -> None:
+    th.set_num_threads(1)
+    (job,) = run.make_jobs([algo], ["CartPole-v1"], [12], budget=2048, protocol="book")
+    (rounds_job,) = run.make_jobs([algo], ["CartPole-v1"], [12], budget=2048, stop_at_solve=True)
+    assert job.stop_at_solve and job.config_hash != rounds_job.config_hash
+    record = run.run_job(job)
+    assert record["protocol"] == "book" and record["book_window"] == 100
+    assert not record["solved"] and record["steps_to_solve"] is None and record["episodes_to_solve"] is None
+    assert record["steps_trained"] == 2048  # two whole rounds: the criterion never held
+    assert 2048 / 500 < record["episodes_trained"] < 2048 / 8  # one evaluation per training episode
+    assert record["final_n_episodes"] == 100 and record["eval_seconds"] > 0
+    steps = [point[0] for point in record["curve"]]
+    assert steps == sorted(steps) and steps[-1] <= 2048 and len(steps) >= 2
+
+
+def test_book_protocol_keeps_the_hashes_of_recorded_runs() -> None:
+    """Runs recorded under the benchmark's own protocol stay 'done': adding the book's did not change their keys."""
+    (job,) = run.make_jobs(["nfq-book"], ["CartPole-v1"], [0], stop_at_solve=True)
+    assert job.config_hash == "f99e7937af26"  # as recorded in benchmarks/results/runs.jsonl
+    with pytest.raises(ValueError, match="protocol must be one of"):
+        run.make_jobs(["nfq-book"], ["CartPole-v1"], [0], protocol="books")
+
+
 def test_runner_local_pool_spawns_a_process_per_job(tmp_path: Path) -> None:
     path = tmp_path / "runs.jsonl"
     args = ["--algos", "reference-nfq", "--envs", "CartPole-v1", "--seeds", "0", "--budget", "1024"]

@@ -9,7 +9,9 @@ number of trained steps (censored): a statistic that reaches a censored value is
 Then the project's targets, each "met", "not met" or "not enough data" (staying solved is judged only on runs trained
 on to the budget), and one PNG of learning curves per env (mean greedy return over seeds with a 95% bootstrap band).
 Runs of a config that ``benchmarks/configs.py`` has since replaced get a table of their own under their env, and are
-left out of the targets and the plots.
+left out of the targets and the plots. Runs of the runner's ``--protocol book`` (``--book-results``) get a table of
+their own beside the book's printed numbers, with the ratio of medians and a Mann-Whitney test between
+implementations.
 """
 
 import argparse
@@ -29,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks import configs
-from benchmarks.run import DEFAULT_RESULTS, REPO_ROOT, read_results
+from benchmarks.run import DEFAULT_BOOK_RESULTS, DEFAULT_RESULTS, REPO_ROOT, read_results
 
 BOOTSTRAP_REPS = 2000
 #: A config "solves" an env when at least this fraction of its seeds solved it (4/5).
@@ -38,6 +40,15 @@ SOLVE_FRACTION = 0.8
 MIN_SEEDS = 5
 #: The nfq-shared target (issue 3): this many of the four envs solved in >= 4/5 seeds.
 SHARED_ENVS_TARGET = 3
+#: The book's own NFQ table on CartPole-v1 ("Grokking Deep Reinforcement Learning", chapter 8): its seeds and the
+#: means it prints over them, under its own criterion (the runner's ``--protocol book``).
+BOOK_NFQ_CARTPOLE = {"seeds": (12, 34, 56, 78, 90), "mean_steps": 233_918, "mean_episodes": 2_344}
+#: The two implementations the book-protocol table compares: the ratio is ``BOOK_PAIR[0] / BOOK_PAIR[1]``.
+BOOK_PAIR = ("nfq-book", "reference-nfq")
+#: Significance level of the Mann-Whitney test between them.
+BOOK_ALPHA = 0.05
+#: Seeds per implementation before the test is judged.
+BOOK_MIN_SEEDS = 15
 
 
 # --- statistics -------------------------------------------------------------------------------------------------
@@ -563,7 +574,110 @@ def _unique(records: Sequence[dict[str, Any]], key: str) -> list[Any]:
     return list(seen.values())
 
 
-def build_report(records: Sequence[dict[str, Any]], out_dir: Path, results_path: Path, command: str) -> str:
+def book_cells(records: Sequence[dict[str, Any]]) -> list[Cell]:
+    """
+    :param records: result lines of the runner's ``--protocol book`` on CartPole-v1
+    :return: one cell per algorithm, in :data:`BOOK_PAIR` order then others; each run once per seed (the latest)
+    """
+    by_algo: dict[str, dict[int, dict[str, Any]]] = defaultdict(dict)
+    for record in records:
+        if record.get("protocol") == "book" and record["env"] == "CartPole-v1":
+            by_algo[record["algo"]][int(record["seed"])] = record
+    order = [algo for algo in BOOK_PAIR if algo in by_algo] + sorted(set(by_algo) - set(BOOK_PAIR))
+    cells = []
+    for algo in order:
+        runs = [by_algo[algo][seed] for seed in sorted(by_algo[algo])]
+        cells.append(Cell("CartPole-v1", algo, int(runs[0]["budget"]), runs[0]["config_hash"], runs, label=algo))
+    return cells
+
+
+def _episodes(cell: Cell) -> np.ndarray:
+    """:return: training episodes to solve per run (unsolved: episodes trained)"""
+    return np.array(
+        [run["episodes_to_solve"] or run["episodes_trained"] for run in cell.runs],
+        dtype=float,
+    )
+
+
+def mann_whitney(num: Cell, den: Cell) -> float:
+    """
+    :return: the two-sided Mann-Whitney U test's p-value for the steps to solve of the two cells (an unsolved run
+        counts as the steps it trained, i.e. more than any run that solved within a smaller budget)
+    """
+    from scipy.stats import mannwhitneyu
+
+    return float(mannwhitneyu(num.steps()[0], den.steps()[0], alternative="two-sided").pvalue)
+
+
+def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
+    """:return: the report's section on the book's criterion (empty without such runs)"""
+    cells = book_cells(records)
+    if not cells:
+        return []
+    book_seeds = BOOK_NFQ_CARTPOLE["seeds"]
+    assert isinstance(book_seeds, tuple)
+    lines = [
+        "## CartPole-v1 under the book's criterion",
+        "",
+        "The book's own protocol (`python -m benchmarks.run --protocol book`, `sb3_nfq.StopTrainingOnBookCriterion`): "
+        "after every training episode the greedy policy plays one episode on a separate env; a run is solved, and "
+        "stops, when the mean of the last 100 of those returns reaches 475. Steps and episodes are counted to that "
+        "point; an unsolved run counts as what it trained (≥). Training seconds exclude the evaluation episodes; the "
+        "final score is 100 new greedy episodes after training. Both implementations run the textbook settings.",
+        "",
+        "| implementation | seeds | solved | env steps: mean | median [min, max] | episodes: mean | median "
+        "| train s: median | final score: mean |",
+        "|---|---|---|---|---|---|---|---|---|",
+        f"| the book, as printed (seeds {', '.join(map(str, book_seeds))}) | {len(book_seeds)} | — "
+        f"| {BOOK_NFQ_CARTPOLE['mean_steps']:,} | — | {BOOK_NFQ_CARTPOLE['mean_episodes']:,} | — | — | — |",
+    ]
+    for subset_name, subset in (("the book's seeds", set(book_seeds)), ("all seeds", None)):
+        for cell in cells:
+            runs = [run for run in cell.runs if subset is None or int(run["seed"]) in subset]
+            if not runs:
+                continue
+            part = Cell(cell.env, cell.algo, cell.budget, cell.config_hash, runs)
+            steps, censored = part.steps()
+            episodes = _episodes(part)
+            bound = "≥" if censored.any() else ""
+            seeds = ", ".join(str(run["seed"]) for run in runs) if subset is not None else f"{part.n} seeds"
+            median, median_bound = part.steps_quantile(50)
+            lines.append(
+                f"| {cell.algo}, {subset_name} ({seeds}) | {part.n} | {int((~censored).sum())}/{part.n} "
+                f"| {bound}{steps.mean():,.0f} | {_steps(median, median_bound)} [{steps.min():,.0f}, "
+                f"{bound}{steps.max():,.0f}] | {bound}{episodes.mean():,.0f} | {bound}{np.median(episodes):,.0f} "
+                f"| {np.median(part.train_seconds()):.1f} | {part.final_scores().mean():.1f} |"
+            )
+    by_algo = {cell.algo: cell for cell in cells}
+    if all(algo in by_algo for algo in BOOK_PAIR):
+        num, den = by_algo[BOOK_PAIR[0]], by_algo[BOOK_PAIR[1]]
+        ratio = num.steps_quantile(50)[0] / den.steps_quantile(50)[0]
+        low, high = median_ratio_ci(num, den)
+        p_value = mann_whitney(num, den)
+        n = min(num.n, den.n)
+        if n < BOOK_MIN_SEEDS:
+            verdict = f"not judged yet: {n} seeds, {BOOK_MIN_SEEDS} needed"
+        elif p_value < BOOK_ALPHA:
+            faster = BOOK_PAIR[0] if ratio < 1 else BOOK_PAIR[1]
+            verdict = f"a difference (p < {BOOK_ALPHA}): {faster} needs fewer steps"
+        else:
+            verdict = f"no difference shown (p ≥ {BOOK_ALPHA})"
+        lines += [
+            "",
+            f"Median env steps to solve, {BOOK_PAIR[0]} / {BOOK_PAIR[1]}: **{ratio:.2f}** (95% percentile-bootstrap CI "
+            f"{low:.2f}-{high:.2f}, runs resampled per implementation); two-sided Mann-Whitney U test on the steps, "
+            f"{num.n} vs {den.n} seeds: p = {p_value:.3f}, {verdict}.",
+        ]
+    return [*lines, ""]
+
+
+def build_report(
+    records: Sequence[dict[str, Any]],
+    out_dir: Path,
+    results_path: Path,
+    command: str,
+    book_records: Sequence[dict[str, Any]] = (),
+) -> str:
     """
     Write ``README.md`` and the learning-curve PNGs into ``out_dir``.
 
@@ -571,6 +685,7 @@ def build_report(records: Sequence[dict[str, Any]], out_dir: Path, results_path:
     :param out_dir: output folder
     :param results_path: where the records came from (named in the report)
     :param command: the report command (printed in the report)
+    :param book_records: result lines of the runner's ``--protocol book`` (their own section)
     :return: the markdown text
     """
     cells_by_env = build_cells(records)
@@ -637,6 +752,7 @@ def build_report(records: Sequence[dict[str, Any]], out_dir: Path, results_path:
                 *table_rows(earlier),
                 "",
             ]
+    lines += book_protocol_lines(book_records)
     text = "\n".join(lines)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "README.md").write_text(text)
@@ -653,6 +769,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="the runner's JSON-lines file")
+    parser.add_argument(
+        "--book-results", type=Path, default=DEFAULT_BOOK_RESULTS, help="the runner's --protocol book results"
+    )
     parser.add_argument("--out-dir", type=Path, help="where README.md and the PNGs go (default: the results' folder)")
     args = parser.parse_args(argv)
     records = read_results(args.results)
@@ -663,7 +782,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = shlex.join(["python", "-m", "benchmarks.report", *argv])
     results_path = args.results.resolve()
     shown_path = results_path.relative_to(REPO_ROOT) if results_path.is_relative_to(REPO_ROOT) else results_path
-    print(build_report(records, out_dir, shown_path, command))
+    print(build_report(records, out_dir, shown_path, command, read_results(args.book_results)))
     print(f"\nwrote {out_dir / 'README.md'} and {len(build_cells(records))} PNG(s)")
     return 0
 

@@ -354,6 +354,61 @@ def test_report_builds_readme_and_curves(results_file: Path, tmp_path: Path) -> 
     assert width > 100 and height > 100
 
 
+@pytest.fixture(scope="module")
+def book_records(tmp_path_factory: pytest.TempPathFactory) -> list[dict[str, Any]]:
+    """Book-protocol lines written by the runner: both implementations, CartPole, seed 12, 1024 steps."""
+    th.set_num_threads(1)
+    path = tmp_path_factory.mktemp("book") / "book_protocol.jsonl"
+    args = ["--protocol", "book", "--algos", *report.BOOK_PAIR, "--envs", "CartPole-v1", "--seeds", "12"]
+    assert run.main([*args, "--budget", "1024", "--workers", "0", "--results", str(path)]) == 0
+    return _lines(path)
+
+
+def _book_run(record: dict[str, Any], algo: str, seed: int, steps: int | None) -> dict[str, Any]:
+    """:return: a copy of a runner line, as if ``algo`` had solved at ``steps`` with this seed (None: unsolved)"""
+    return {
+        **record,
+        "algo": algo,
+        "seed": seed,
+        "solved": steps is not None,
+        "steps_to_solve": steps,
+        "episodes_to_solve": None if steps is None else steps // 100,
+        "steps_trained": 500_000 if steps is None else steps,
+        "episodes_trained": 4_000 if steps is None else steps // 100,
+    }
+
+
+def test_report_book_table_sits_beside_the_books_numbers_and_judges_the_difference(
+    book_records: list[dict[str, Any]], results_file: Path, tmp_path: Path
+) -> None:
+    record = book_records[0]
+    few = "\n".join(report.book_protocol_lines(book_records))
+    assert "| the book, as printed (seeds 12, 34, 56, 78, 90) | 5 | — | 233,918 |" in few
+    assert "| nfq-book, the book's seeds (12) | 1 | 0/1 | ≥1,024 |" in few
+    assert "not judged yet: 1 seeds, 15 needed" in few
+
+    seeds = [12, 34, 56, 78, 90, *range(10)]
+    slow = [_book_run(record, "nfq-book", seed, 200_000 + 1_000 * i) for i, seed in enumerate(seeds)]
+    fast = [_book_run(record, "reference-nfq", seed, 100_000 + 1_000 * i) for i, seed in enumerate(seeds)]
+    text = "\n".join(report.book_protocol_lines([*slow, *fast]))
+    assert "reference-nfq: **1.93**" in text  # 207,000 / 107,000
+    assert "15 vs 15 seeds" in text and "a difference (p < 0.05): reference-nfq needs fewer steps" in text
+    # the book's five seeds: mean steps (200,000 + 201,000 + ... + 204,000) / 5 and episodes a hundredth of that
+    assert "| nfq-book, the book's seeds (12, 34, 56, 78, 90) | 5 | 5/5 | 202,000 |" in text
+
+    alike = [_book_run(record, "nfq-book", seed, 100_000 + 1_000 * i) for i, seed in enumerate(seeds)]
+    alike[0] = _book_run(record, "nfq-book", 12, None)  # one unsolved run: its mean is a lower bound
+    text = "\n".join(report.book_protocol_lines([*alike, *fast]))
+    assert "no difference shown (p ≥ 0.05)" in text
+    assert "| nfq-book, all seeds (15 seeds) | 15 | 14/15 | ≥" in text
+
+    book_path = tmp_path / "book_protocol.jsonl"
+    book_path.write_text("".join(json.dumps(line) + "\n" for line in [*slow, *fast]))
+    args = ["--results", str(results_file), "--book-results", str(book_path), "--out-dir", str(tmp_path / "out")]
+    assert report.main(args) == 0
+    assert "## CartPole-v1 under the book's criterion" in (tmp_path / "out" / "README.md").read_text()
+
+
 def test_report_flags_placeholder_rows(results_file: Path, tmp_path: Path) -> None:
     records = [dict(record, placeholder_config=record["algo"] == "nfq-book") for record in _lines(results_file)]
     flagged = tmp_path / "runs.jsonl"

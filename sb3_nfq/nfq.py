@@ -1,5 +1,6 @@
 """Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 off-policy algorithm."""
 
+import contextlib
 import io
 import math
 import pathlib
@@ -10,6 +11,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
@@ -26,6 +28,7 @@ from stable_baselines3.common.type_aliases import (
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 from torch.nn import functional as F
 
+from sb3_nfq.memory import check_memory_fits, rows_per_chunk, take_rows
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
 
@@ -53,8 +56,8 @@ class NFQDivergenceError(FloatingPointError, ValueError):
 
 #: Capacity of a growing memory when ``buffer_size`` is not given (SB3's replay buffer default).
 DEFAULT_GROWING_CAPACITY = 1_000_000
-#: Largest number of transitions whose targets are computed in one forward pass (bounds activation memory).
-TARGET_CHUNK = 65_536
+#: ``learn()``'s default budget: the textbook's CartPole-v1 budget, in env steps.
+DEFAULT_TOTAL_TIMESTEPS = 300_000
 
 
 class NFQ(OffPolicyAlgorithm):
@@ -230,6 +233,10 @@ class NFQ(OffPolicyAlgorithm):
         # Probability of a random action while collecting ("epsilon" of epsilon-greedy)
         self.exploration_rate = exploration_initial_eps
         self._n_rounds = 0
+        # How much of the current round is in the memory (env.step() calls; episodes, for episode rounds): a round
+        # cut short by a callback or by the end of learn() is completed by the next learn(), then fitted.
+        self._round_steps = 0
+        self._round_episodes = 0
 
         if _init_setup_model:
             self._setup_model()
@@ -291,6 +298,7 @@ class NFQ(OffPolicyAlgorithm):
             DictReplayBuffer if isinstance(self.observation_space, spaces.Dict) else ReplayBuffer
         )
         self.replay_buffer_class = buffer_class
+        check_memory_fits(self.observation_space, capacity, self.memory)
         return buffer_class(
             capacity,
             self.observation_space,
@@ -302,7 +310,7 @@ class NFQ(OffPolicyAlgorithm):
 
     def learn(
         self: SelfNFQ,
-        total_timesteps: int,
+        total_timesteps: int = DEFAULT_TOTAL_TIMESTEPS,
         callback: MaybeCallback = None,
         log_interval: int = 4,
         tb_log_name: str = "NFQ",
@@ -310,10 +318,14 @@ class NFQ(OffPolicyAlgorithm):
         progress_bar: bool = False,
     ) -> SelfNFQ:
         """
-        Train NFQ for (at least) ``total_timesteps`` environment steps, in whole rounds.
+        Train NFQ for ``total_timesteps`` environment steps (rounded up to a multiple of ``n_envs``), fitting each
+        round once it is complete. A round that is not complete when training stops (at ``total_timesteps``, or
+        because a callback returned False) stays in the memory, unfitted: the next ``learn()`` completes it and
+        fits it, and ``save_replay_buffer`` saves it. With ``train_freq`` counted in episodes, training runs in
+        whole rounds and may go past ``total_timesteps``.
 
-        :param total_timesteps: The total number of environment steps to train on; the last round is
-            completed, so training may run up to one round past it.
+        :param total_timesteps: The total number of environment steps to train on (default: 300,000, the
+            textbook's CartPole-v1 budget)
         :param callback: callback(s) called at every step with state of the algorithm.
         :param log_interval: Log data every ``log_interval`` episodes
         :param tb_log_name: the name of the run for TensorBoard logging
@@ -327,32 +339,80 @@ class NFQ(OffPolicyAlgorithm):
         callback.on_training_start(locals(), globals())
         assert self.env is not None
 
-        while self.num_timesteps < total_timesteps:
-            # 1. Collect a round of fresh transitions with the epsilon-greedy policy.
+        round_length = self._round_length()
+        by_episode = round_length.unit == TrainFrequencyUnit.EPISODE
+        while True:
+            if (self._round_episodes if by_episode else self._round_steps) >= round_length.frequency:
+                # 2. Fit: gradient_steps fitted iterations on the whole memory.
+                self.train(gradient_steps=self.gradient_steps, batch_size=self.batch_size)
+                self._round_steps = self._round_episodes = 0
+                # 3. The textbook discards the fitted round; a growing memory keeps it.
+                if self.memory == "fresh":
+                    self.replay_buffer.reset()
+            if self.num_timesteps >= total_timesteps:
+                break
+            # 1. Collect (the rest of) a round with the epsilon-greedy policy, stopping at total_timesteps.
             self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)
+            if by_episode:
+                to_collect = round_length.frequency - self._round_episodes
+            else:
+                steps_left = math.ceil((total_timesteps - self.num_timesteps) / self.n_envs)
+                to_collect = min(round_length.frequency - self._round_steps, steps_left)
             rollout = self.collect_rollouts(
                 self.env,
                 callback=callback,
-                train_freq=self._round_length(),
+                train_freq=TrainFreq(to_collect, round_length.unit),
                 replay_buffer=self.replay_buffer,
                 log_interval=log_interval,
             )
-            if rollout.continue_training:
-                if rollout.episode_timesteps > self.replay_buffer.buffer_size * self.n_envs:
-                    raise ValueError(
-                        f"Round {self._n_rounds + 1} collected {rollout.episode_timesteps} transitions, more than "
-                        f"buffer_size={self.buffer_size} holds; raise buffer_size."
-                    )
-                # 2. Fit: gradient_steps fitted iterations on the whole memory.
-                self.train(gradient_steps=self.gradient_steps, batch_size=self.batch_size)
-            # 3. The textbook discards the round (also one cut short by a callback); a growing memory keeps it.
-            if self.memory == "fresh":
-                self.replay_buffer.reset()
             if not rollout.continue_training:
-                break
+                self._store_interrupted_step(callback)
+            if self._round_steps > self.replay_buffer.buffer_size:
+                raise ValueError(
+                    f"Round {self._n_rounds + 1} collected {self._round_steps * self.n_envs} transitions, more than "
+                    f"buffer_size={self.buffer_size} holds; raise buffer_size."
+                )
+            if not rollout.continue_training:
+                break  # a complete round is fitted by the next learn(), before it collects
 
         callback.on_training_end()
         return self
+
+    def _store_interrupted_step(self, callback: BaseCallback) -> None:
+        """
+        SB3's ``collect_rollouts`` returns as soon as a callback's ``on_step`` says stop, before it stores that
+        step's transition and moves ``_last_obs`` on. Finish the step from the callback's view of
+        ``collect_rollouts``' locals, so that nothing collected is lost and the next ``learn()`` goes on from the
+        env's real state.
+
+        :param callback: the callback ``learn()`` passed to ``collect_rollouts``
+        """
+        step = callback.locals
+        dones = np.asarray(step["dones"])
+        self._update_info_buffer(step["infos"], dones)
+        self._store_transition(
+            self.replay_buffer, step["buffer_actions"], step["new_obs"], step["rewards"], dones, step["infos"]
+        )
+        self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+        self._on_step()
+        self._episode_num += int(dones.sum())
+
+    def _store_transition(
+        self,
+        replay_buffer: ReplayBuffer,
+        buffer_action: np.ndarray,
+        new_obs: np.ndarray | dict[str, np.ndarray],
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """
+        Store one ``env.step()``'s transitions (SB3's), and count them into the current round, so that the round's
+        progress saved with a model (e.g. by ``CheckpointCallback``) always matches what the memory holds.
+        """
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        self._round_steps += 1
+        self._round_episodes += int(np.sum(dones))
 
     def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
         """
@@ -361,13 +421,22 @@ class NFQ(OffPolicyAlgorithm):
         :param gradient_steps: Number of fitted iterations (the book's K)
         :param batch_size: ``None``: one full-batch step per epoch; else shuffled mini-batches of this size
         """
+        if self.replay_buffer.size() == 0:
+            raise ValueError(
+                "NFQ's memory is empty: there is nothing to fit. Collect transitions with learn(), load them with "
+                "load_replay_buffer(), or fit a dataset with fit_offline()."
+            )
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         batch = self._stored_transitions()
         n_transitions = len(batch.rewards)
         self._n_rounds += 1
         full_batch = batch_size is None or batch_size >= n_transitions
-        shared_states = self._states_and_successors(batch) if full_batch else None
+        # Reading Q(s', .) off the Q(s, .) pass needs that pass to cover the whole memory at once, and a network
+        # that computes the same in training and eval mode.
+        one_pass = n_transitions <= rows_per_chunk(batch.observations)
+        share = full_batch and one_pass and not _has_mode_dependent_layers(self.q_net)
+        shared_states = self._states_and_successors(batch) if share else None
 
         losses = []
         for iteration in range(gradient_steps):
@@ -375,10 +444,8 @@ class NFQ(OffPolicyAlgorithm):
             for _ in range(self.fit_epochs):
                 for indices in _minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
                     data = _take(batch, indices)
-                    q_values, targets = self._q_values_and_targets(data, indices, fixed_targets, shared_states)
-                    loss = LOSSES[self.loss](q_values, targets)
-
-                    loss_value = loss.item()
+                    self.policy.optimizer.zero_grad()
+                    loss_value, q_values, targets = self._loss_and_gradient(data, indices, fixed_targets, shared_states)
                     if not math.isfinite(loss_value):
                         raise NFQDivergenceError(
                             f"NFQ loss became {loss_value} in round {self._n_rounds} (fitted iteration "
@@ -387,9 +454,6 @@ class NFQ(OffPolicyAlgorithm):
                             "or lower learning_rate, use loss='huber' or set max_grad_norm."
                         )
                     losses.append(loss_value)
-
-                    self.policy.optimizer.zero_grad()
-                    loss.backward()
                     if self.max_grad_norm is not None:
                         th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
                     self.policy.optimizer.step()
@@ -401,6 +465,45 @@ class NFQ(OffPolicyAlgorithm):
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
+
+    def _loss_and_gradient(
+        self,
+        data: ReplayBufferSamples,
+        indices: th.Tensor | None,
+        fixed_targets: th.Tensor | None,
+        shared_states: tuple[th.Tensor, th.Tensor] | None,
+    ) -> tuple[float, th.Tensor, th.Tensor]:
+        """
+        The loss of one gradient step over ``data``, and its gradient (``backward``). When ``data`` holds more rows
+        than one forward pass may take (:func:`~sb3_nfq.memory.rows_per_chunk`: a large memory of images), the
+        gradient is accumulated over chunks of rows: the same full-batch gradient, in bounded memory (a BatchNorm
+        layer then normalises each chunk on its own).
+
+        :param data: the transitions of this gradient step
+        :param indices: their rows in the memory (``None``: all of it)
+        :param fixed_targets: the iteration's targets of the whole memory (``"fixed_per_iteration"``), else ``None``
+        :param shared_states: from :meth:`_states_and_successors`, else ``None``
+        :return: the loss, and ``Q(s, a)`` and the targets (of the last chunk), for logging
+        """
+        n_transitions = len(data.rewards)
+        chunk_rows = rows_per_chunk(data.observations)
+        if n_transitions <= chunk_rows:
+            q_values, targets = self._q_values_and_targets(data, indices, fixed_targets, shared_states)
+            loss = LOSSES[self.loss](q_values, targets)
+            loss.backward()
+            return loss.item(), q_values, targets
+        if fixed_targets is not None:
+            targets = fixed_targets if indices is None else fixed_targets[indices]
+        else:
+            targets = self._td_targets(data)
+        loss_value = 0.0
+        for rows in th.arange(n_transitions, device=targets.device).split(chunk_rows):
+            q_values = th.gather(self.q_net(take_rows(data.observations, rows)), 1, data.actions[rows].long())
+            chunk_targets = targets[rows]
+            loss = LOSSES[self.loss](q_values, chunk_targets, reduction="sum") / n_transitions
+            loss.backward()
+            loss_value += loss.item()
+        return loss_value, q_values, chunk_targets
 
     def _q_values_and_targets(
         self,
@@ -460,17 +563,19 @@ class NFQ(OffPolicyAlgorithm):
     def _td_targets(self, data: ReplayBufferSamples) -> th.Tensor:
         """
         :param data: transitions
-        :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the current network, as a constant
-            (no graph), shape ``(n, 1)``; computed in chunks so a large memory fits in memory.
+        :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the current network in eval mode (no
+            Dropout, BatchNorm's running statistics used and left as they are), as a constant (no graph), shape
+            ``(n, 1)``; computed in chunks so a large memory fits in memory.
         """
-        with th.no_grad():
+        with th.no_grad(), _eval_mode(self.q_net):
             n_transitions = len(data.rewards)
-            if n_transitions <= TARGET_CHUNK:
+            chunk_rows = rows_per_chunk(data.next_observations)
+            if n_transitions <= chunk_rows:
                 next_q_values = self.q_net(data.next_observations).max(dim=1).values
             else:
-                chunks = th.arange(n_transitions, device=data.rewards.device).split(TARGET_CHUNK)
+                chunks = th.arange(n_transitions, device=data.rewards.device).split(chunk_rows)
                 next_q_values = th.cat(
-                    [self.q_net(_take_obs(data.next_observations, chunk)).max(dim=1).values for chunk in chunks]
+                    [self.q_net(take_rows(data.next_observations, chunk)).max(dim=1).values for chunk in chunks]
                 )
             next_q_values = next_q_values.reshape(-1, 1)
             return data.rewards + (1 - data.dones) * self.gamma * next_q_values
@@ -547,8 +652,10 @@ class NFQ(OffPolicyAlgorithm):
 
     def _stored_transitions(self) -> ReplayBufferSamples:
         """
-        :return: Every transition in the memory, in collection order (step-major, then env), as tensors.
-            ``dones`` is 1 only for true terminations: time-limit truncations bootstrap.
+        :return: Every transition in the memory, in the buffer's row order (step-major, then env: collection order
+            until a growing memory is full, after which new rows overwrite the oldest in place), as tensors that
+            share the buffer's memory on the CPU (no copy of the memory per round). ``dones`` is 1 only for true
+            terminations: time-limit truncations bootstrap.
         """
         buffer = self.replay_buffer
         n_rows = buffer.buffer_size if buffer.full else buffer.pos
@@ -561,8 +668,8 @@ class NFQ(OffPolicyAlgorithm):
             if isinstance(obs, dict):
                 normalized = buffer._normalize_obs({key: flat(value) for key, value in obs.items()}, env)
                 assert isinstance(normalized, dict)
-                return {key: buffer.to_torch(value) for key, value in normalized.items()}
-            return buffer.to_torch(buffer._normalize_obs(flat(obs), env))  # type: ignore[arg-type]
+                return {key: buffer.to_torch(value, copy=False) for key, value in normalized.items()}
+            return buffer.to_torch(buffer._normalize_obs(flat(obs), env), copy=False)  # type: ignore[arg-type]
 
         terminated = flat(buffer.dones) * (1 - flat(buffer.timeouts))
         return ReplayBufferSamples(
@@ -593,8 +700,15 @@ class NFQ(OffPolicyAlgorithm):
         :param state: The last states (unused, for recurrent policies)
         :param episode_start: The last masks (unused, for recurrent policies)
         :param deterministic: Whether to return the greedy action(s)
-        :return: the model's action(s) and the next state (unused)
+        :return: the model's action(s), always an ``np.ndarray`` (0-d for one observation), and the next state
+            (unused)
         """
+        if isinstance(observation, tuple) and len(observation) == 2 and isinstance(observation[1], dict):
+            raise ValueError(
+                "You have passed a tuple to predict() instead of a NumPy array or a Dict: probably the (obs, info) "
+                "pair of a Gymnasium env's reset() or step(). Pass the observation alone: `obs, info = env.reset()` "
+                "then `model.predict(obs)` (an SB3 VecEnv's reset() returns the observations alone)."
+            )
         if deterministic or self.exploration_rate <= 0:
             return self.policy.predict(observation, state, episode_start, deterministic=True)
         vectorized = self.policy.is_vectorized_observation(observation)
@@ -606,7 +720,7 @@ class NFQ(OffPolicyAlgorithm):
         if not explore.all():  # the network is only needed where some observation acts greedily
             greedy_actions, _ = self.policy.predict(observation, state, episode_start, deterministic=True)
             actions = np.where(explore, actions, np.reshape(greedy_actions, n_obs))
-        return (actions if vectorized else actions[0]), state
+        return (actions if vectorized else np.asarray(actions[0])), state
 
     def _coin_flips(self, n_obs: int) -> tuple[np.ndarray, np.ndarray]:
         """
@@ -690,6 +804,23 @@ class NFQ(OffPolicyAlgorithm):
         return ["policy", "policy.optimizer"], []
 
 
+@contextlib.contextmanager
+def _eval_mode(module: th.nn.Module) -> Iterator[None]:
+    """Put ``module`` in eval mode for the block, then back in the mode it was in."""
+    was_training = module.training
+    module.train(False)
+    try:
+        yield
+    finally:
+        module.train(was_training)
+
+
+def _has_mode_dependent_layers(module: th.nn.Module) -> bool:
+    """:return: whether ``module`` holds layers that compute differently in training mode (BatchNorm, Dropout)"""
+    mode_dependent = (th.nn.modules.batchnorm._NormBase, th.nn.modules.dropout._DropoutNd)
+    return any(isinstance(layer, mode_dependent) for layer in module.modules())
+
+
 def _minibatch_indices(n_transitions: int, batch_size: int | None, device: th.device) -> Iterator[th.Tensor | None]:
     """
     :param n_transitions: number of transitions in the memory
@@ -705,11 +836,7 @@ def _minibatch_indices(n_transitions: int, batch_size: int | None, device: th.de
 
 
 def _take_obs(observations: Any, indices: th.Tensor | None) -> Any:
-    if indices is None:
-        return observations
-    if isinstance(observations, dict):
-        return {key: value[indices] for key, value in observations.items()}
-    return observations[indices]
+    return observations if indices is None else take_rows(observations, indices)
 
 
 def _take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferSamples:

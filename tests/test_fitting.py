@@ -222,7 +222,7 @@ def test_round_size_is_train_freq_rounded_up_to_a_multiple_of_n_envs(n_envs: int
     env = make_vec_env("CartPole-v1", n_envs=n_envs, seed=0)
     model = NFQ("MlpPolicy", env, train_freq=64, gradient_steps=1, seed=0)
     fitting = record_fitting(model)
-    model.learn(1)
+    model.learn(64)
     expected = -(-64 // n_envs) * n_envs
     assert [len(x) for x in fitting.grad_inputs] == [expected]
     assert model.num_timesteps == expected

@@ -83,20 +83,23 @@ def test_callbacks_get_every_step_and_the_policy_is_in_eval_mode_while_collectin
     assert fitting.training_mode_while_fitting == {True}
 
 
-def test_a_callback_can_stop_training_mid_round_and_that_round_is_not_fitted() -> None:
+def test_a_callback_can_stop_training_mid_round_and_the_next_learn_completes_and_fits_that_round() -> None:
     class StopAfter(BaseCallback):
         def _on_step(self) -> bool:
             return self.n_calls < 100
 
     model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=3, seed=0)
     fitting = record_fitting(model)
-    model.learn(10_000, callback=StopAfter())
+    recorder = TransitionRecorder()
+    model.learn(10_000, callback=[StopAfter(), recorder])
     assert model.num_timesteps == 100
     assert fitting.optimizer_steps == 3  # only the first, complete round was fitted
-    assert model.replay_buffer.size() == 0
-    # learning again starts a new round from an empty memory
-    model.learn(64, reset_num_timesteps=False)
-    assert fitting.optimizer_steps == 6
+    assert model.replay_buffer.size() == 36  # the cut round's 36 steps, the one the callback stopped at included
+    model.learn(28, reset_num_timesteps=False, callback=recorder)
+    assert fitting.optimizer_steps == 6 and model.num_timesteps == 128
+    observations, _, _ = recorder.transitions(64, 128)
+    th.testing.assert_close(fitting.grad_inputs[-1], th.as_tensor(observations))  # steps 65-128 fitted together
+    assert model.replay_buffer.size() == 0  # a fitted fresh round is discarded
 
 
 def test_logger_records_sb3_and_nfq_keys(tmp_path: Path) -> None:

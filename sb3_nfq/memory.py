@@ -1,0 +1,90 @@
+"""
+What NFQ's memory costs in RAM, and how much of it one forward pass may take: both in bytes, so that a memory of
+images is bounded like a memory of vectors.
+"""
+
+import contextlib
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+#: Most bytes of float32 network input in one forward pass over the memory (target passes, and the chunks a
+#: full-batch gradient is accumulated over): a whole CartPole memory of millions of rows, a few hundred 84x84x4 frames.
+CHUNK_BYTES = 64 * 2**20
+
+
+def _space_bytes(space: spaces.Space) -> int:
+    """:return: bytes one observation of ``space`` takes in SB3's replay buffer"""
+    if isinstance(space, spaces.Dict):
+        return sum(_space_bytes(subspace) for subspace in space.spaces.values())
+    if isinstance(space, spaces.Discrete):
+        return np.dtype(space.dtype).itemsize
+    shape = space.shape or ()
+    return int(np.prod(shape)) * np.dtype(space.dtype).itemsize
+
+
+def memory_bytes(observation_space: spaces.Space, capacity: int) -> int:
+    """
+    :param observation_space: the observations stored
+    :param capacity: transitions the memory holds (all envs together)
+    :return: bytes SB3's replay buffer takes for them: observation and next observation, action, reward, done and
+        timeout flags
+    """
+    per_transition = 2 * _space_bytes(observation_space) + 8 + 4 + 4 + 4
+    return capacity * per_transition
+
+
+def available_memory_bytes() -> int | None:
+    """:return: the RAM available to a new allocation (Linux's MemAvailable, else physical RAM), if known"""
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    with contextlib.suppress(ValueError, OSError, AttributeError):
+        import os
+
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    return None
+
+
+def check_memory_fits(observation_space: spaces.Space, capacity: int, memory: str) -> None:
+    """
+    Refuse a memory that cannot fit in this machine's RAM: SB3's buffer allocates it lazily, so it would otherwise
+    fail (or swap) only once it fills, maybe hours into training.
+
+    :param observation_space: the observations stored
+    :param capacity: transitions the memory holds
+    :param memory: ``"fresh"`` or ``"growing"`` (named in the error)
+    """
+    needed, available = memory_bytes(observation_space, capacity), available_memory_bytes()
+    if available is None or needed <= available:
+        return
+    per_transition = needed / capacity
+    fits = int(available // per_transition)
+    raise ValueError(
+        f"buffer_size={capacity:,} transitions of these observations need {needed / 2**30:.1f} GiB "
+        f"({per_transition / 1024:,.1f} KiB each, observation and next observation) for memory={memory!r}, "
+        f"but only {available / 2**30:.1f} GiB of RAM is available. Pass a smaller buffer_size "
+        f"(at most about {fits:,} here; the memory then keeps the newest transitions)."
+    )
+
+
+def rows_per_chunk(observations: Any) -> int:
+    """
+    :param observations: the memory's observations (a tensor, or a dict of tensors), one row per transition
+    :return: how many rows one forward pass may take: :data:`CHUNK_BYTES` of float32 input
+    """
+    tensors = observations.values() if isinstance(observations, dict) else [observations]
+    row_bytes = sum(4 * math.prod(tensor.shape[1:]) for tensor in tensors)
+    return max(1, CHUNK_BYTES // max(1, row_bytes))
+
+
+def take_rows(observations: Any, rows: th.Tensor | slice) -> Any:
+    """:return: the given rows of observations (a tensor, or a dict of tensors)"""
+    if isinstance(observations, dict):
+        return {key: value[rows] for key, value in observations.items()}
+    return observations[rows]

@@ -6,7 +6,8 @@ Peak RAM of a growing memory of images: NFQ with ``CnnPolicy`` and ``memory="gro
 
 Each run: rounds of N/2 steps (so the last round fits the whole memory of N), one fitted iteration per round,
 full-batch (``batch_size=None``: the gradient is accumulated over chunks of rows, see ``sb3_nfq.memory``),
-1 torch thread. Peak RSS is the process's ``ru_maxrss``. Writes the JSON results and the markdown table, and puts
+1 torch thread. Peak RSS is the process's ``ru_maxrss``; the JSON also has the training seconds, which only mean
+something on a quiet machine. Writes the JSON results and the markdown table, and puts
 the table in README.md between its ``memory-images`` markers.
 """
 
@@ -96,15 +97,13 @@ def measure(size: int) -> dict[str, Any]:
 def table(results: Sequence[dict[str, Any]]) -> str:
     """:return: the markdown table of the results"""
     lines = [
-        "| transitions in the memory | the memory's own arrays | peak RSS of the process | of which before `learn()` "
-        "| training s (1 torch thread) |",
-        "|---|---|---|---|---|",
+        "| transitions in the memory | the memory's own arrays | peak RSS of the process | of which before `learn()` |",
+        "|---|---|---|---|",
     ]
     for result in results:
         lines.append(
             f"| {result['transitions']:,} | {result['memory_mib'] / 1024:.2f} GiB "
-            f"| {result['peak_rss_mib'] / 1024:.2f} GiB | {result['peak_rss_before_learn_mib'] / 1024:.2f} GiB "
-            f"| {result['learn_seconds']:.0f} |"
+            f"| {result['peak_rss_mib'] / 1024:.2f} GiB | {result['peak_rss_before_learn_mib'] / 1024:.2f} GiB |"
         )
     return "\n".join(lines)
 

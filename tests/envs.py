@@ -85,3 +85,56 @@ class NaNRewardAfter(gym.Wrapper):
         if self.steps_taken > self.n_steps:
             reward = float("nan")
         return obs, reward, terminated, truncated, info
+
+
+class SpaceEnv(gym.Env):
+    """
+    Observations drawn from any ``observation_space`` (Discrete, MultiDiscrete, MultiBinary, ...); the reward is 1
+    for action 1; episodes are truncated after ``length`` steps.
+
+    :param observation_space: the space observations are sampled from (seeded by ``reset(seed=...)``)
+    :param length: episode length
+    """
+
+    def __init__(self, observation_space: spaces.Space, length: int = 10) -> None:
+        self.observation_space = observation_space
+        self.action_space = spaces.Discrete(2)
+        self.length = length
+        self.t = 0
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        super().reset(seed=seed)
+        if seed is not None:
+            self.observation_space.seed(seed)
+        self.t = 0
+        return self.observation_space.sample(), {}
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        self.t += 1
+        return self.observation_space.sample(), float(action), False, self.t >= self.length, {}
+
+
+class SplitObservation(gym.ObservationWrapper):
+    """CartPole's observation as a Dict of two Boxes: ``{"cart": x, x_dot; "pole": theta, theta_dot}``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        box = spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32)
+        self.observation_space = spaces.Dict({"cart": box, "pole": box})
+
+    def observation(self, observation: Any) -> dict[str, np.ndarray]:
+        return {"cart": observation[:2], "pole": observation[2:]}
+
+
+class ChannelFirst(gym.ObservationWrapper):
+    """An image env's ``(H, W, C)`` frames as ``(C, H, W)``, as PyTorch-style envs give them."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        space = env.observation_space
+        assert isinstance(space, spaces.Box) and space.shape is not None
+        height, width, channels = space.shape
+        self.observation_space = spaces.Box(0, 255, shape=(channels, height, width), dtype=np.uint8)
+
+    def observation(self, observation: Any) -> np.ndarray:
+        return np.ascontiguousarray(np.transpose(observation, (2, 0, 1)))

@@ -5,7 +5,7 @@ import io
 import math
 import pathlib
 from collections.abc import Iterator
-from typing import Any, ClassVar, Literal, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
@@ -26,25 +26,21 @@ from stable_baselines3.common.type_aliases import (
     TrainFrequencyUnit,
 )
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
-from torch.nn import functional as F
 
 from sb3_nfq.memory import check_memory_fits, rows_per_chunk, take_rows
 from sb3_nfq.offline import TransitionDataset
+from sb3_nfq.parameters import (
+    LOSSES,
+    LossName,
+    MemoryName,
+    TargetModeName,
+    check_action_space,
+    check_hyperparameters,
+    reject_dqn_parameters,
+)
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
 
 SelfNFQ = TypeVar("SelfNFQ", bound="NFQ")
-
-#: Regression losses NFQ can fit its Q-values with (the textbook uses MSE).
-LOSSES = {"mse": F.mse_loss, "huber": F.smooth_l1_loss}
-LossName = Literal["mse", "huber"]
-#: "fresh": the textbook's batch of one round, discarded after fitting; "growing": the 2005 paper's memory of
-#: every transition so far (up to ``buffer_size``, then the oldest go first).
-MEMORIES = ("fresh", "growing")
-MemoryName = Literal["fresh", "growing"]
-#: "recompute_every_step": the textbook's targets, recomputed before every gradient step;
-#: "fixed_per_iteration": classic fitted Q-iteration, targets computed once per iteration then regressed on.
-TARGET_MODES = ("recompute_every_step", "fixed_per_iteration")
-TargetModeName = Literal["recompute_every_step", "fixed_per_iteration"]
 
 
 class NFQDivergenceError(FloatingPointError, ValueError):
@@ -147,6 +143,8 @@ class NFQ(OffPolicyAlgorithm):
     :param device: Device (cpu, cuda, ...) on which the code should be run.
         Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    :param kwargs: nothing else is accepted: DQN's ``learning_starts``, ``target_update_interval``, ``tau``, ...
+        raise a ``TypeError`` saying what NFQ does instead
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -184,8 +182,10 @@ class NFQ(OffPolicyAlgorithm):
         seed: int | None = None,
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
+        **kwargs: Any,
     ) -> None:
-        _check_hyperparameters(
+        reject_dqn_parameters(kwargs)
+        check_hyperparameters(
             learning_rate=learning_rate,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
@@ -242,7 +242,7 @@ class NFQ(OffPolicyAlgorithm):
             self._setup_model()
 
     def _setup_model(self) -> None:
-        _check_action_space(self.action_space)
+        check_action_space(self.action_space)
         self._convert_train_freq()
         if self.replay_buffer is None:
             self.replay_buffer = self._make_memory()
@@ -854,79 +854,6 @@ def _take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBuffer
         dones=batch.dones[indices],
         rewards=batch.rewards[indices],
     )
-
-
-def _check_action_space(action_space: spaces.Space | None) -> None:
-    if not isinstance(action_space, spaces.Discrete):
-        raise ValueError(
-            "NFQ supports only Discrete action spaces (its network outputs one Q-value per action), "
-            f"got {action_space}. For Box action spaces use SAC or TD3; "
-            "for MultiDiscrete, wrap the env to flatten its actions."
-        )
-    if int(action_space.start) != 0:
-        raise ValueError(
-            f"NFQ supports Discrete action spaces that start at 0, got {action_space} (start={action_space.start}). "
-            "Wrap the env so that its actions are 0..n-1."
-        )
-
-
-def _check_hyperparameters(
-    learning_rate: float | Schedule,
-    train_freq: int | tuple[int, str],
-    gradient_steps: int,
-    batch_size: int | None,
-    buffer_size: int | None,
-    memory: str,
-    target_mode: str,
-    fit_epochs: int,
-    gamma: float,
-    loss: str,
-    exploration_fraction: float,
-    exploration_initial_eps: float,
-    exploration_final_eps: float,
-    max_grad_norm: float | None,
-) -> None:
-    """Fail early, naming the parameter and its allowed values."""
-    if not callable(learning_rate) and not learning_rate > 0:
-        raise ValueError(f"learning_rate must be a positive number or a schedule, got {learning_rate!r}")
-    frequency, unit = train_freq if isinstance(train_freq, tuple) else (train_freq, "step")
-    if not isinstance(frequency, int) or isinstance(frequency, bool) or frequency <= 0:
-        raise ValueError(f"train_freq (transitions per round) must be a positive integer, got {frequency!r}")
-    if unit not in ("step", "episode"):
-        raise ValueError(f"the unit of train_freq must be 'step' or 'episode', got {unit!r}")
-    for name, value in (
-        ("gradient_steps", gradient_steps),
-        ("fit_epochs", fit_epochs),
-        ("batch_size", batch_size),
-        ("buffer_size", buffer_size),
-    ):
-        if value is None and name in ("batch_size", "buffer_size"):
-            continue
-        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-            raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    if not 0.0 <= gamma <= 1.0:
-        raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
-    if loss not in LOSSES:
-        raise ValueError(f"loss must be one of {sorted(LOSSES)}, got {loss!r}")
-    if memory not in MEMORIES:
-        raise ValueError(f"memory must be one of {list(MEMORIES)}, got {memory!r}")
-    if target_mode not in TARGET_MODES:
-        raise ValueError(f"target_mode must be one of {list(TARGET_MODES)}, got {target_mode!r}")
-    if fit_epochs != 1 and target_mode != "fixed_per_iteration":
-        raise ValueError(
-            f"fit_epochs={fit_epochs} needs target_mode='fixed_per_iteration': with 'recompute_every_step' "
-            "every step already uses fresh targets, so raise gradient_steps instead"
-        )
-    if not 0.0 < exploration_fraction <= 1.0:
-        raise ValueError(f"exploration_fraction must be in (0, 1], got {exploration_fraction!r}")
-    for name, eps in (
-        ("exploration_initial_eps", exploration_initial_eps),
-        ("exploration_final_eps", exploration_final_eps),
-    ):
-        if not 0.0 <= eps <= 1.0:
-            raise ValueError(f"{name} must be a probability in [0, 1], got {eps!r}")
-    if max_grad_norm is not None and not max_grad_norm > 0:
-        raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")
 
 
 def _check_nfq_checkpoint(path: str | pathlib.Path | io.BufferedIOBase, custom_objects: dict[str, Any] | None) -> None:

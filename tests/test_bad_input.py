@@ -39,6 +39,26 @@ def test_bad_hyperparameters_are_rejected_at_construction(kwargs: dict[str, Any]
 
 
 @pytest.mark.parametrize(
+    ("name", "value", "instead"),
+    [
+        ("learning_starts", 1000, "no warm-up"),
+        ("target_update_interval", 500, "no target network"),
+        ("tau", 0.005, "no target network"),
+        ("optimize_memory_usage", True, "buffer_size"),
+        ("replay_buffer_class", None, "memory='fresh'"),
+    ],
+)
+def test_dqn_parameters_get_a_type_error_saying_what_nfq_does_instead(name: str, value: Any, instead: str) -> None:
+    with pytest.raises(TypeError, match=f"DQN's parameter '{name}'.*{instead}.*Coming from DQN"):
+        NFQ("MlpPolicy", "CartPole-v1", **{name: value})
+
+
+def test_an_unknown_keyword_is_a_type_error_naming_it() -> None:
+    with pytest.raises(TypeError, match="unexpected keyword argument 'gradient_step'"):
+        NFQ("MlpPolicy", "CartPole-v1", gradient_step=3)
+
+
+@pytest.mark.parametrize(
     ("env_id", "space"),
     [("Pendulum-v1", "Box"), ("MountainCarContinuous-v0", "Box")],
 )

@@ -1,0 +1,123 @@
+"""NFQ's parameters: their allowed values, and the checks that refuse anything else early, naming the parameter."""
+
+from typing import Any, Literal
+
+from gymnasium import spaces
+from stable_baselines3.common.type_aliases import Schedule
+from torch.nn import functional as F
+
+#: Regression losses NFQ can fit its Q-values with (the textbook uses MSE).
+LOSSES = {"mse": F.mse_loss, "huber": F.smooth_l1_loss}
+LossName = Literal["mse", "huber"]
+#: "fresh": the textbook's batch of one round, discarded after fitting; "growing": the 2005 paper's memory of
+#: every transition so far (up to ``buffer_size``, then the oldest go first).
+MEMORIES = ("fresh", "growing")
+MemoryName = Literal["fresh", "growing"]
+#: "recompute_every_step": the textbook's targets, recomputed before every gradient step;
+#: "fixed_per_iteration": classic fitted Q-iteration, targets computed once per iteration then regressed on.
+TARGET_MODES = ("recompute_every_step", "fixed_per_iteration")
+TargetModeName = Literal["recompute_every_step", "fixed_per_iteration"]
+
+
+#: DQN's parameters that NFQ has no counterpart for, and what NFQ does instead.
+DQN_ONLY_PARAMETERS = {
+    "learning_starts": "NFQ has no warm-up: it fits each round as soon as its train_freq transitions are collected",
+    "target_update_interval": (
+        "NFQ has no target network: its TD targets come from the network being fitted, recomputed before every "
+        "step (target_mode='recompute_every_step', the textbook) or once per fitted iteration "
+        "(target_mode='fixed_per_iteration')"
+    ),
+    "tau": "NFQ has no target network to update softly (see target_mode for how its targets are held still)",
+    "optimize_memory_usage": "NFQ's memory keeps next observations explicitly; bound it with buffer_size instead",
+    "replay_buffer_class": "NFQ builds its own memory: choose memory='fresh' (textbook) or 'growing', and buffer_size",
+    "replay_buffer_kwargs": "NFQ builds its own memory: choose memory='fresh' (textbook) or 'growing', and buffer_size",
+    "action_noise": "NFQ acts on Discrete actions, epsilon-greedy (exploration_initial_eps, exploration_final_eps)",
+}
+
+
+def reject_dqn_parameters(kwargs: dict[str, Any]) -> None:
+    """
+    :param kwargs: keyword arguments NFQ's constructor does not take
+    :raises TypeError: naming the first one, and, for a DQN parameter, what NFQ does instead
+    """
+    for name in kwargs:
+        if name in DQN_ONLY_PARAMETERS:
+            raise TypeError(
+                f"NFQ got DQN's parameter {name!r}, which it does not have: {DQN_ONLY_PARAMETERS[name]}. "
+                "See 'Coming from DQN' in the README."
+            )
+        raise TypeError(f"NFQ.__init__() got an unexpected keyword argument {name!r}")
+
+
+def check_action_space(action_space: spaces.Space | None) -> None:
+    """Refuse action spaces NFQ's network cannot output a Q-value for each action of."""
+    if not isinstance(action_space, spaces.Discrete):
+        raise ValueError(
+            "NFQ supports only Discrete action spaces (its network outputs one Q-value per action), "
+            f"got {action_space}. For Box action spaces use SAC or TD3; "
+            "for MultiDiscrete, wrap the env to flatten its actions."
+        )
+    if int(action_space.start) != 0:
+        raise ValueError(
+            f"NFQ supports Discrete action spaces that start at 0, got {action_space} (start={action_space.start}). "
+            "Wrap the env so that its actions are 0..n-1."
+        )
+
+
+def check_hyperparameters(
+    learning_rate: float | Schedule,
+    train_freq: int | tuple[int, str],
+    gradient_steps: int,
+    batch_size: int | None,
+    buffer_size: int | None,
+    memory: str,
+    target_mode: str,
+    fit_epochs: int,
+    gamma: float,
+    loss: str,
+    exploration_fraction: float,
+    exploration_initial_eps: float,
+    exploration_final_eps: float,
+    max_grad_norm: float | None,
+) -> None:
+    """Fail early, naming the parameter and its allowed values."""
+    if not callable(learning_rate) and not learning_rate > 0:
+        raise ValueError(f"learning_rate must be a positive number or a schedule, got {learning_rate!r}")
+    frequency, unit = train_freq if isinstance(train_freq, tuple) else (train_freq, "step")
+    if not isinstance(frequency, int) or isinstance(frequency, bool) or frequency <= 0:
+        raise ValueError(f"train_freq (transitions per round) must be a positive integer, got {frequency!r}")
+    if unit not in ("step", "episode"):
+        raise ValueError(f"the unit of train_freq must be 'step' or 'episode', got {unit!r}")
+    for name, value in (
+        ("gradient_steps", gradient_steps),
+        ("fit_epochs", fit_epochs),
+        ("batch_size", batch_size),
+        ("buffer_size", buffer_size),
+    ):
+        if value is None and name in ("batch_size", "buffer_size"):
+            continue
+        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if not 0.0 <= gamma <= 1.0:
+        raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {sorted(LOSSES)}, got {loss!r}")
+    if memory not in MEMORIES:
+        raise ValueError(f"memory must be one of {list(MEMORIES)}, got {memory!r}")
+    if target_mode not in TARGET_MODES:
+        raise ValueError(f"target_mode must be one of {list(TARGET_MODES)}, got {target_mode!r}")
+    if fit_epochs != 1 and target_mode != "fixed_per_iteration":
+        raise ValueError(
+            f"fit_epochs={fit_epochs} needs target_mode='fixed_per_iteration': with 'recompute_every_step' "
+            "every step already uses fresh targets, so raise gradient_steps instead"
+        )
+    if not 0.0 < exploration_fraction <= 1.0:
+        raise ValueError(f"exploration_fraction must be in (0, 1], got {exploration_fraction!r}")
+    for name, eps in (
+        ("exploration_initial_eps", exploration_initial_eps),
+        ("exploration_final_eps", exploration_final_eps),
+    ):
+        if not 0.0 <= eps <= 1.0:
+            raise ValueError(f"{name} must be a probability in [0, 1], got {eps!r}")
+    if max_grad_norm is not None and not max_grad_norm > 0:
+        raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")

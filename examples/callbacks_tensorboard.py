@@ -9,6 +9,7 @@ CheckpointCallback (zip checkpoints) and TensorBoard logging, then resuming from
 import argparse
 from pathlib import Path
 
+import torch as th
 from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -25,7 +26,9 @@ def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--total-timesteps", type=int, default=60_000)
     parser.add_argument("--log-dir", type=Path, default=Path("logs/nfq_cartpole"))
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: see README)")
     args = parser.parse_args(argv)
+    th.set_num_threads(args.threads)
     log_dir: Path = args.log_dir
 
     # Two envs: a round is still 1024 transitions in total (512 steps in each env).

@@ -10,6 +10,7 @@ from typing import Any, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
+import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.env_checker import check_env
 from stable_baselines3.common.evaluation import evaluate_policy
@@ -76,7 +77,9 @@ def main(argv: list[str] | None = None) -> float:
     """
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--total-timesteps", type=int, default=30_000)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: see README)")
     args = parser.parse_args(argv)
+    th.set_num_threads(args.threads)
 
     check_env(GridWorld())  # SB3's checker: the env follows the gymnasium API
     model = NFQ(

@@ -65,7 +65,9 @@ def main(argv: list[str] | None = None) -> float:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--total-timesteps", type=int, default=50_000)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: see README)")
     args = parser.parse_args(argv)
+    th.set_num_threads(args.threads)
 
     model = NFQ("MlpPolicy", "CartPole-v1", seed=args.seed, **GROWING_MEMORY_NFQ)
     greedy_means = RecordEvaluations()

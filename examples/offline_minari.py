@@ -67,7 +67,9 @@ def main(argv: list[str] | None = None) -> float:
     parser.add_argument("--iterations", type=int, default=25, help="fitted iterations")
     parser.add_argument("--minari-dir", type=Path, default=Path("data/minari"))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: see README)")
     args = parser.parse_args(argv)
+    th.set_num_threads(args.threads)
     os.environ["MINARI_DATASETS_PATH"] = str(args.minari_dir.resolve())
 
     record_random_episodes(args.episodes, args.seed)

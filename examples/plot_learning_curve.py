@@ -13,6 +13,7 @@ import matplotlib
 matplotlib.use("Agg")  # no display needed
 import matplotlib.pyplot as plt
 import numpy as np
+import torch as th
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.results_plotter import load_results, ts2xy
@@ -30,7 +31,9 @@ def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--total-timesteps", type=int, default=100_000)
     parser.add_argument("--log-dir", type=Path, default=Path("logs/nfq_curve"))
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: see README)")
     args = parser.parse_args(argv)
+    th.set_num_threads(args.threads)
     log_dir: Path = args.log_dir
     log_dir.mkdir(parents=True, exist_ok=True)
 

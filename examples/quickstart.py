@@ -7,6 +7,7 @@ Quickstart: NFQ is used exactly like SB3's DQN.
 import argparse
 
 import gymnasium as gym
+import torch as th
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 
@@ -22,7 +23,9 @@ def main(argv: list[str] | None = None) -> float:
     """
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--total-timesteps", type=int, default=150_000)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: see README)")
     args = parser.parse_args(argv)
+    th.set_num_threads(args.threads)
 
     # Textbook defaults: Q-network 4-512-128-2, RMSprop(lr=5e-4), rounds of 1024 fresh transitions with
     # epsilon=0.5, 40 fitted iterations per round, gamma=1.

@@ -5,6 +5,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import torch as th
 
 from sb3_nfq import NFQ
 
@@ -18,6 +19,14 @@ def _main(name: str) -> Any:
 def test_quickstart_runs() -> None:
     mean_return = _main("quickstart.py")(["--total-timesteps", "2048"])
     assert mean_return > 0
+
+
+def test_examples_use_one_torch_thread_unless_told_otherwise() -> None:
+    th.set_num_threads(2)
+    _main("quickstart.py")(["--total-timesteps", "1024"])
+    assert th.get_num_threads() == 1
+    for example in sorted(EXAMPLES.glob("*.py")):
+        assert '"--threads", type=int, default=1' in example.read_text(), example.name
 
 
 def test_callbacks_tensorboard_example_writes_evaluations_checkpoints_and_tensorboard(tmp_path: Path) -> None:
@@ -38,7 +47,8 @@ def test_main_job_trains_evaluates_saves_and_reloads(tmp_path: Path, capsys: pyt
     printed = capsys.readouterr().out
     assert status == 1  # two rounds cannot solve CartPole; the job says so
     assert "NOT solved" in printed and "Final evaluation on 100 new greedy episodes" in printed
-    assert "Loaded agent, one greedy episode" in printed
+    assert "Loaded agent, one greedy episode from that state" in printed
+    assert "Loaded agent at a new start state" in printed and "Q(s, left) = " in printed
     assert NFQ.load(output).num_timesteps == 2048
 
 

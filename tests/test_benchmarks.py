@@ -15,7 +15,7 @@ import pytest
 import torch as th
 from torch.nn import functional as F
 
-from benchmarks import configs, overhead, report, run, tune_nfq
+from benchmarks import configs, memory_images, overhead, report, run, tune_nfq
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
 
 RESULT_FIELDS = {
@@ -593,3 +593,21 @@ def test_overhead_script_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         assert 0 < times["env"] <= times["collect"]
         assert times["without_env"] == pytest.approx(times["total"] - times["env"], rel=0.5)
     assert numbers["fitting"]["max_weight_difference_after_first_fit"] < 1e-4  # same data, same start: same fit
+
+
+# --- memory of images ---------------------------------------------------------------------------------------------
+
+
+def test_memory_images_script_measures_a_run_in_its_own_process(tmp_path: Path) -> None:
+    out = tmp_path / "memory_images.json"
+    assert memory_images.main(["--sizes", "200", "--out", str(out), "--no-readme"]) == 0
+    (result,) = json.loads(out.read_text())["results"]
+    assert result["transitions"] == 200 and result["rounds"] == 2 and result["torch_threads"] == 1
+    assert result["peak_rss_mib"] > result["peak_rss_before_learn_mib"] > 0
+    assert out.with_suffix(".md").read_text().strip() == memory_images.table([result])
+
+
+def test_readme_memory_table_is_the_generated_one() -> None:
+    payload = json.loads(memory_images.DEFAULT_OUT.read_text())
+    text = memory_images.README.read_text()
+    assert memory_images.update_readme(text, memory_images.table(payload["results"])) == text

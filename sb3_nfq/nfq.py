@@ -120,6 +120,11 @@ class NFQ(OffPolicyAlgorithm):
     :param memory: ``"fresh"`` (textbook): fit on the round's transitions only, then discard them;
         ``"growing"`` (2005 paper): keep every transition (the oldest are dropped past ``buffer_size``)
         and fit on the whole memory every round.
+    :param round_fraction: With ``memory="growing"``: ``None`` (default): every round collects ``train_freq``
+        transitions. A number ``f``: a round collects ``max(train_freq, f * M)`` transitions, ``M`` being what the
+        memory holds when the round starts. Rounds lengthen as the memory grows, so each collected transition pays
+        for about ``gradient_steps / f`` transitions' worth of fitting whatever the memory's size, and the total
+        cost grows linearly with the steps (with a fixed ``train_freq``, with their square)
     :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
         ``"fixed_per_iteration"`` (classic fitted Q-iteration): computed once per fitted iteration, then
         ``fit_epochs`` epochs of regression on them.
@@ -167,6 +172,7 @@ class NFQ(OffPolicyAlgorithm):
         batch_size: int | None = None,
         buffer_size: int | None = None,
         memory: MemoryName = "fresh",
+        round_fraction: float | None = None,
         target_mode: TargetModeName = "recompute_every_step",
         fit_epochs: int = 1,
         gamma: float = 1.0,
@@ -192,6 +198,7 @@ class NFQ(OffPolicyAlgorithm):
             batch_size=batch_size,
             buffer_size=buffer_size,
             memory=memory,
+            round_fraction=round_fraction,
             target_mode=target_mode,
             fit_epochs=fit_epochs,
             gamma=gamma,
@@ -224,6 +231,7 @@ class NFQ(OffPolicyAlgorithm):
         )
         self.loss = loss
         self.memory = memory
+        self.round_fraction = round_fraction
         self.target_mode = target_mode
         self.fit_epochs = fit_epochs
         self.exploration_initial_eps = exploration_initial_eps
@@ -237,6 +245,8 @@ class NFQ(OffPolicyAlgorithm):
         # cut short by a callback or by the end of learn() is completed by the next learn(), then fitted.
         self._round_steps = 0
         self._round_episodes = 0
+        # With round_fraction: the current round's length in env.step() calls, fixed when it starts (0: not yet).
+        self._round_target = 0
 
         if _init_setup_model:
             self._setup_model()
@@ -342,10 +352,10 @@ class NFQ(OffPolicyAlgorithm):
         round_length = self._round_length()
         by_episode = round_length.unit == TrainFrequencyUnit.EPISODE
         while True:
-            if (self._round_episodes if by_episode else self._round_steps) >= round_length.frequency:
+            if (self._round_episodes if by_episode else self._round_steps) >= self._round_size(round_length):
                 # 2. Fit: gradient_steps fitted iterations on the whole memory.
                 self.train(gradient_steps=self.gradient_steps, batch_size=self.batch_size)
-                self._round_steps = self._round_episodes = 0
+                self._round_steps = self._round_episodes = self._round_target = 0
                 # 3. The textbook discards the fitted round; a growing memory keeps it.
                 if self.memory == "fresh":
                     self.replay_buffer.reset()
@@ -357,7 +367,7 @@ class NFQ(OffPolicyAlgorithm):
                 to_collect = round_length.frequency - self._round_episodes
             else:
                 steps_left = math.ceil((total_timesteps - self.num_timesteps) / self.n_envs)
-                to_collect = min(round_length.frequency - self._round_steps, steps_left)
+                to_collect = min(self._round_size(round_length) - self._round_steps, steps_left)
             rollout = self.collect_rollouts(
                 self.env,
                 callback=callback,
@@ -377,6 +387,20 @@ class NFQ(OffPolicyAlgorithm):
 
         callback.on_training_end()
         return self
+
+    def _round_size(self, round_length: TrainFreq) -> int:
+        """
+        :param round_length: the round length ``train_freq`` asks for
+        :return: how long the current round is, in episodes or ``env.step()`` calls: ``train_freq``, or with
+            ``round_fraction`` the larger of ``train_freq`` and ``round_fraction`` times the transitions the memory
+            held when the round started (fixed then, and saved with the model)
+        """
+        if self.round_fraction is None or round_length.unit == TrainFrequencyUnit.EPISODE:
+            return round_length.frequency
+        if self._round_target == 0:
+            held = (self.replay_buffer.size() - self._round_steps) * self.n_envs
+            self._round_target = max(round_length.frequency, math.ceil(self.round_fraction * held / self.n_envs))
+        return self._round_target
 
     def _store_interrupted_step(self, callback: BaseCallback) -> None:
         """

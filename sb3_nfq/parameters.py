@@ -71,6 +71,7 @@ def check_hyperparameters(
     batch_size: int | None,
     buffer_size: int | None,
     memory: str,
+    round_fraction: float | None,
     target_mode: str,
     fit_epochs: int,
     gamma: float,
@@ -104,6 +105,16 @@ def check_hyperparameters(
         raise ValueError(f"loss must be one of {sorted(LOSSES)}, got {loss!r}")
     if memory not in MEMORIES:
         raise ValueError(f"memory must be one of {list(MEMORIES)}, got {memory!r}")
+    if round_fraction is not None:
+        if isinstance(round_fraction, bool) or not isinstance(round_fraction, int | float) or not round_fraction > 0:
+            raise ValueError(f"round_fraction must be a positive number or None, got {round_fraction!r}")
+        if memory != "growing":
+            raise ValueError(
+                f"round_fraction={round_fraction} sizes rounds by the memory, which needs memory='growing' "
+                f"(got memory={memory!r}: a fresh memory holds one round)"
+            )
+        if unit != "step":
+            raise ValueError(f"round_fraction needs train_freq counted in steps, got train_freq={train_freq!r}")
     if target_mode not in TARGET_MODES:
         raise ValueError(f"target_mode must be one of {list(TARGET_MODES)}, got {target_mode!r}")
     if fit_epochs != 1 and target_mode != "fixed_per_iteration":

@@ -2,11 +2,14 @@
 
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_nfq import NFQ
 from tests.conftest import TransitionRecorder, record_fitting
@@ -213,3 +216,62 @@ def test_variant_settings_and_the_growing_memory_survive_save_and_load(tmp_path:
     fitting = record_fitting(loaded)
     loaded.learn(64, reset_num_timesteps=False)
     assert {len(x) for x in fitting.grad_inputs} == {192}
+
+
+# --- rounds that lengthen with the memory (round_fraction) -------------------------------------------------------
+
+GROWING_ROUNDS: dict[str, Any] = {"memory": "growing", "train_freq": 64, "round_fraction": 0.5, "gradient_steps": 1}
+
+
+def test_round_fraction_lengthens_rounds_with_the_memory() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", seed=0, **GROWING_ROUNDS)
+    fitting = record_fitting(model)
+    model.learn(648)
+    # rounds of max(64, 0.5 * memory at the round's start): 64, 64 (32), 64 (64), 96, 144, 216
+    assert [len(x) for x in fitting.grad_inputs] == [64, 128, 192, 288, 432, 648]
+    assert model._n_rounds == 6 and model.num_timesteps == 648
+
+
+def test_round_fraction_counts_the_transitions_of_every_env() -> None:
+    env = make_vec_env("CartPole-v1", n_envs=3, seed=0)
+    model = NFQ("MlpPolicy", env, seed=0, **{**GROWING_ROUNDS, "train_freq": 60, "round_fraction": 1.0})
+    fitting = record_fitting(model)
+    model.learn(480)
+    # 20 steps of 3 envs, then rounds as long as the memory (in steps of 3 transitions): 60, 120, 240, 480
+    assert [len(x) for x in fitting.grad_inputs] == [60, 120, 240, 480]
+
+
+def test_a_resumed_round_keeps_the_length_it_started_with(tmp_path: Path) -> None:
+    whole = NFQ("MlpPolicy", "CartPole-v1", seed=0, device="cpu", **GROWING_ROUNDS)
+    whole.learn(648)
+    split = NFQ("MlpPolicy", "CartPole-v1", seed=0, device="cpu", **GROWING_ROUNDS)
+    split.learn(300)  # inside the fifth round (288 to 432 steps)
+    split.save(tmp_path / "model.zip")
+    saved, _, _ = load_from_zip_file(tmp_path / "model.zip")  # NFQ.load would reseed the global RNGs here
+    assert saved is not None and saved["_round_target"] == 144 and saved["_round_steps"] == 12
+    split.learn(348, reset_num_timesteps=False)
+    assert split._n_rounds == 6
+    for a, b in zip(whole.q_net.parameters(), split.q_net.parameters(), strict=True):
+        assert th.equal(a, b)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"round_fraction": 0.0, "memory": "growing"}, "round_fraction must be a positive number or None"),
+        ({"round_fraction": "10%", "memory": "growing"}, "round_fraction must be a positive number or None"),
+        ({"round_fraction": 0.1}, "needs memory='growing'"),
+        ({"round_fraction": 0.1, "memory": "growing", "train_freq": (2, "episode")}, "train_freq counted in steps"),
+    ],
+)
+def test_bad_round_fraction_is_refused(kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        NFQ("MlpPolicy", "CartPole-v1", **kwargs)
+
+
+def test_textbook_rounds_do_not_lengthen() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=1, seed=0)
+    assert model.round_fraction is None and NFQ("MlpPolicy", "CartPole-v1").round_fraction is None
+    fitting = record_fitting(model)
+    model.learn(256)
+    assert [len(x) for x in fitting.grad_inputs] == [64, 128, 192, 256]

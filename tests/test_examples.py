@@ -16,9 +16,10 @@ def _main(name: str) -> Any:
     return runpy.run_path(str(EXAMPLES / name))["main"]
 
 
-def test_quickstart_runs() -> None:
-    mean_return = _main("quickstart.py")(["--total-timesteps", "2048"])
-    assert mean_return > 0
+def test_quickstart_trains_for_its_budget_and_evaluates(capsys: pytest.CaptureFixture[str]) -> None:
+    _main("quickstart.py")(["--total-timesteps", "2048"])
+    printed = capsys.readouterr().out
+    assert "Greedy return over 20 episodes after 2048 steps" in printed and "One greedy episode lasted" in printed
 
 
 def test_examples_use_one_torch_thread_unless_told_otherwise() -> None:
@@ -52,9 +53,11 @@ def test_main_job_trains_evaluates_saves_and_reloads(tmp_path: Path, capsys: pyt
     assert NFQ.load(output).num_timesteps == 2048
 
 
-def test_custom_env_example_checks_its_env_and_trains_with_multi_input_policy() -> None:
+def test_custom_env_example_checks_its_env_and_trains_with_multi_input_policy(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     success_rate = _main("custom_env_gridworld.py")(["--total-timesteps", "2048"])
-    assert 0.0 <= success_rate <= 1.0
+    assert f"After 2048 steps: greedy success rate {success_rate:.0%} over 100 random" in capsys.readouterr().out
 
 
 def test_plot_learning_curve_example_writes_a_png(tmp_path: Path) -> None:
@@ -73,8 +76,7 @@ def test_offline_minari_example_records_a_local_dataset_and_fits_it(tmp_path: Pa
 
 
 def test_growing_memory_example_keeps_every_transition(capsys: pytest.CaptureFixture[str]) -> None:
-    final_mean = _main("growing_memory_cartpole.py")(["--total-timesteps", "2048"])
-    assert final_mean > 0
+    _main("growing_memory_cartpole.py")(["--total-timesteps", "2048"])
     assert "Memory holds 2048 transitions after 2048 steps. 2 evaluations;" in capsys.readouterr().out
 
 

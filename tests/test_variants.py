@@ -176,9 +176,16 @@ def test_rprop_with_minibatches_is_refused(kwargs: dict) -> None:
         NFQ("MlpPolicy", "CartPole-v1", policy_kwargs={"optimizer_class": th.optim.Rprop}, **kwargs)
 
 
-def test_rprop_with_a_batch_size_that_covers_the_whole_fresh_round_is_full_batch() -> None:
-    model = NFQ("MlpPolicy", "CartPole-v1", batch_size=1024, policy_kwargs={"optimizer_class": th.optim.Rprop})
-    assert model.batch_size == 1024
+def test_rprop_with_a_batch_size_that_covers_the_whole_fresh_round_takes_full_batch_steps() -> None:
+    kwargs: dict[str, Any] = {
+        "policy_kwargs": {"optimizer_class": th.optim.Rprop},
+        "train_freq": 64,
+        "gradient_steps": 3,
+    }
+    model = NFQ("MlpPolicy", "CartPole-v1", batch_size=64, seed=0, **kwargs)
+    fitting = record_fitting(model)
+    model.learn(64)
+    assert fitting.optimizer_steps == 3 and [len(x) for x in fitting.grad_inputs] == [64, 64, 64]
 
 
 @pytest.mark.parametrize(

@@ -1,30 +1,37 @@
 # Two commands set everything up on a fresh machine (see README.md):
 #   make solve   - train NFQ with the textbook defaults on CartPole-v1 until solved, evaluate, save, load
 #   make test    - run the test suite (the slow learning test included)
-# torch==2.13.0 (the CPU build on this machine's disk) is installed before the project: letting pip
-# resolve a plain `torch` first would pull several GB of CUDA packages.
+# `make solve` installs the package alone; `make test` adds the tests extra (zoo, offline, benchmarks, lint).
+# torch is installed first, from its CPU build: left to resolve stable-baselines3's plain `torch` requirement, pip
+# would pull the CUDA build and its libraries (several GB) on Linux.
 
 VENV ?= .venv
 PYTHON := $(VENV)/bin/python
-STAMP := $(VENV)/.sb3-nfq-installed
+TORCH ?= torch==2.13.0
+CORE := $(VENV)/.sb3-nfq-core
+DEV := $(VENV)/.sb3-nfq-dev
 
 .PHONY: setup solve test lint
 
-setup: $(STAMP)
+setup: $(DEV)
 
-$(STAMP): pyproject.toml
+$(CORE): pyproject.toml
 	python3 -m venv $(VENV)
-	$(PYTHON) -m pip install --quiet torch==2.13.0
-	$(PYTHON) -m pip install --quiet -e ".[tests]"
-	touch $(STAMP)
+	$(PYTHON) -m pip install --quiet "$(TORCH)"
+	$(PYTHON) -m pip install --quiet -e .
+	touch $(CORE)
 
-solve: $(STAMP)
+$(DEV): $(CORE)
+	$(PYTHON) -m pip install --quiet -e ".[tests]"
+	touch $(DEV)
+
+solve: $(CORE)
 	$(PYTHON) examples/solve_cartpole.py
 
-test: $(STAMP)
+test: $(DEV)
 	$(PYTHON) -m pytest -p no:cacheprovider
 
-lint: $(STAMP)
+lint: $(DEV)
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .
 	$(PYTHON) -m mypy

@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     with th.no_grad():
         start_q = loaded.q_net(loaded.policy.obs_to_tensor(np.asarray(obs))[0])[0].numpy()
     print(
-        f"Loaded agent at a new start state {np.round(obs, 3).tolist()}: Q(s, left) = {start_q[0]:.1f}, "
+        f"Loaded agent at a new start state {[round(float(x), 3) for x in obs]}: Q(s, left) = {start_q[0]:.1f}, "
         f"Q(s, right) = {start_q[1]:.1f} (the return it expects from there, at most 500)"
     )
     episode_return, done = 0.0, False

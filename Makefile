@@ -11,7 +11,12 @@ TORCH ?= torch==2.13.0
 CORE := $(VENV)/.sb3-nfq-core
 DEV := $(VENV)/.sb3-nfq-dev
 
-.PHONY: setup solve test lint
+LOWEST ?= .venv-lowest
+#: The fast tests that need no extra: run against the lowest versions pyproject.toml declares.
+LOWEST_TESTS := tests/test_fitting.py tests/test_contract.py tests/test_sb3_integration.py tests/test_sb3_usage.py \
+	tests/test_variants.py tests/test_bad_input.py tests/test_save_load.py tests/test_callbacks.py
+
+.PHONY: setup solve test lint test-lowest
 
 setup: $(DEV)
 
@@ -35,3 +40,14 @@ lint: $(DEV)
 	$(PYTHON) -m ruff check .
 	$(PYTHON) -m ruff format --check .
 	$(PYTHON) -m mypy
+
+# A fresh venv with the lowest declared versions of the core dependencies (torch stays the CPU build above).
+test-lowest:
+	rm -rf $(LOWEST)
+	python3 -m venv $(LOWEST)
+	$(LOWEST)/bin/python -m pip install --quiet "$(TORCH)"
+	$(LOWEST)/bin/python .ci/lowest_versions.py pyproject.toml > $(LOWEST)/lowest.txt
+	$(LOWEST)/bin/python -m pip install --quiet -r $(LOWEST)/lowest.txt "pytest>=8"
+	$(LOWEST)/bin/python -m pip install --quiet --no-deps -e .
+	$(LOWEST)/bin/python -m pip list 2>/dev/null | grep -i -E "^(stable.baselines3|gymnasium|numpy|torch) "
+	$(LOWEST)/bin/python -m pytest -p no:cacheprovider -q -m "not slow" $(LOWEST_TESTS)

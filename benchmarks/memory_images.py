@@ -25,8 +25,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from benchmarks.run import REPO_ROOT, machine_line, package_versions
-
+REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO_ROOT / "benchmarks" / "results" / "memory_images.json"
 README = REPO_ROOT / "README.md"
 MARKERS = (
@@ -132,6 +131,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         with context.Pool(1) as pool:
             results.append(pool.apply(measure, (size,)))
         print(json.dumps(results[-1]), flush=True)
+    from benchmarks.run import machine_line, package_versions
+
     args.out.parent.mkdir(parents=True, exist_ok=True)
     payload = {"machine": machine_line(), "versions": package_versions(), "results": results}
     args.out.write_text(json.dumps(payload, indent=2) + "\n")

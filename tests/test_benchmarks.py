@@ -603,7 +603,8 @@ def test_memory_images_script_measures_a_run_in_its_own_process(tmp_path: Path) 
     assert memory_images.main(["--sizes", "200", "--out", str(out), "--no-readme"]) == 0
     (result,) = json.loads(out.read_text())["results"]
     assert result["transitions"] == 200 and result["rounds"] == 2 and result["torch_threads"] == 1
-    assert result["peak_rss_mib"] > result["peak_rss_before_learn_mib"] > 0
+    assert result["peak_rss_mib"] >= result["peak_rss_before_learn_mib"] > 0  # 200 frames may not raise the peak
+    assert result["memory_mib"] * 2**20 == 200 * (2 * 84 * 84 * 4 + 20)  # frame and next frame, then the scalars
     assert out.with_suffix(".md").read_text().strip() == memory_images.table([result])
 
 

@@ -16,7 +16,7 @@ LOWEST ?= .venv-lowest
 LOWEST_TESTS := tests/test_fitting.py tests/test_contract.py tests/test_sb3_integration.py tests/test_sb3_usage.py \
 	tests/test_variants.py tests/test_bad_input.py tests/test_save_load.py tests/test_callbacks.py
 
-.PHONY: setup solve test lint test-lowest
+.PHONY: setup solve test lint test-lowest check-zoo-extra
 
 setup: $(DEV)
 
@@ -51,3 +51,7 @@ test-lowest:
 	$(LOWEST)/bin/python -m pip install --quiet --no-deps -e .
 	$(LOWEST)/bin/python -m pip list 2>/dev/null | grep -i -E "^(stable.baselines3|gymnasium|numpy|torch) "
 	$(LOWEST)/bin/python -m pytest -p no:cacheprovider -q -m "not slow" $(LOWEST_TESTS)
+
+# The wheel with only the [zoo] extra, in a fresh venv outside the repository: every command of docs/zoo.md.
+check-zoo-extra:
+	bash .ci/check_zoo_extra.sh

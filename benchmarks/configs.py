@@ -198,7 +198,9 @@ def zoo_hyperparams_path() -> Path:
     """:return: the installed rl_zoo3 package's ``hyperparams/dqn.yml`` (found without importing rl_zoo3)"""
     spec = importlib.util.find_spec("rl_zoo3")
     if spec is None or not spec.submodule_search_locations:
-        raise ModuleNotFoundError("dqn-zoo needs the rl_zoo3 package: pip install 'sb3-nfq[zoo]'")
+        raise ModuleNotFoundError(
+            "dqn-zoo needs the rl_zoo3 package: the zoo extra, pip install '.[zoo]' in a checkout"
+        )
     return Path(next(iter(spec.submodule_search_locations))) / "hyperparams" / "dqn.yml"
 
 

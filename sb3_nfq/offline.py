@@ -136,7 +136,8 @@ class TransitionDataset:
     def from_minari(cls, dataset: Any) -> "TransitionDataset":
         """
         Build a dataset from a Minari dataset: a ``MinariDataset`` or the id of one stored locally
-        (under ``MINARI_DATASETS_PATH``); nothing is downloaded. Needs ``pip install "sb3-nfq[offline]"``.
+        (under ``MINARI_DATASETS_PATH``); nothing is downloaded. Needs the ``offline`` extra
+        (``pip install ".[offline]"`` in a checkout).
 
         :param dataset: a ``minari.MinariDataset`` or a local dataset id such as ``"cartpole/random-v0"``
         :return: every transition of every episode
@@ -144,7 +145,9 @@ class TransitionDataset:
         try:
             import minari
         except ImportError as error:
-            raise ImportError('from_minari needs Minari: pip install "sb3-nfq[offline]"') from error
+            raise ImportError(
+                'from_minari needs Minari: the offline extra, pip install ".[offline]" in a checkout'
+            ) from error
         if isinstance(dataset, str):
             dataset = minari.load_dataset(dataset, download=False)
         columns: dict[str, list[np.ndarray]] = {

@@ -20,7 +20,7 @@ agents, and none exist for NFQ).
 drives the zoo's ``ExperimentManager`` itself.
 
 ``rl_zoo3``, ``optuna`` and ``requests`` (imported by the zoo's ``enjoy`` but not declared by it) come with
-``pip install "sb3-nfq[zoo]"``; this module imports them only when a command runs.
+the ``zoo`` extra (``pip install ".[zoo]"`` in a checkout); this module imports them only when a command runs.
 """
 
 import argparse
@@ -133,7 +133,7 @@ def register() -> None:
         from rl_zoo3.utils import ALGOS
     except ImportError as error:
         raise ImportError(
-            f'The RL Zoo bridge needs rl_zoo3 and optuna: pip install "sb3-nfq[zoo]" ({error})'
+            f'The RL Zoo bridge needs rl_zoo3 and optuna: the zoo extra, pip install ".[zoo]" in a checkout ({error})'
         ) from error
     ALGOS[ALGO_NAME] = NFQ
     HYPERPARAMS_SAMPLER[ALGO_NAME] = sample_nfq_params
@@ -186,7 +186,8 @@ def _zoo_command(command: str) -> Callable[[], None]:
         return enjoy
     except ImportError as error:
         raise ImportError(
-            f'`{command}` needs rl_zoo3, optuna and requests: pip install "sb3-nfq[zoo]" ({error})'
+            f'`{command}` needs rl_zoo3, optuna and requests: the zoo extra, pip install ".[zoo]" in a checkout '
+            f"({error})"
         ) from error
 
 

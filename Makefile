@@ -1,7 +1,8 @@
 # Two commands set everything up on a fresh machine (see README.md):
 #   make solve   - train NFQ with the textbook defaults on CartPole-v1 until solved, evaluate, save, load
 #   make test    - run the test suite (the slow learning test included)
-# `make solve` installs the package alone; `make test` adds the tests extra (zoo, offline, benchmarks, lint).
+# `make solve` installs the package alone; `make test` adds its zoo and offline extras and the dev group of
+# pyproject.toml (tests, lint, the benchmark suite), which needs pip >= 25.1.
 # torch is installed first, from its CPU build: left to resolve stable-baselines3's plain `torch` requirement, pip
 # would pull the CUDA build and its libraries (several GB) on Linux.
 
@@ -16,7 +17,7 @@ LOWEST ?= .venv-lowest
 LOWEST_TESTS := tests/test_fitting.py tests/test_contract.py tests/test_sb3_integration.py tests/test_sb3_usage.py \
 	tests/test_variants.py tests/test_bad_input.py tests/test_save_load.py tests/test_callbacks.py
 
-.PHONY: setup solve test lint test-lowest check-zoo-extra
+.PHONY: setup solve test lint test-lowest check-zoo-extra check-sdist
 
 setup: $(DEV)
 
@@ -27,7 +28,8 @@ $(CORE): pyproject.toml
 	touch $(CORE)
 
 $(DEV): $(CORE)
-	$(PYTHON) -m pip install --quiet -e ".[tests]"
+	$(PYTHON) -m pip install --quiet --upgrade "pip>=25.1"
+	$(PYTHON) -m pip install --quiet -e ".[zoo,offline]" --group dev
 	touch $(DEV)
 
 solve: $(CORE)
@@ -55,3 +57,7 @@ test-lowest:
 # The wheel with only the [zoo] extra, in a fresh venv outside the repository: every command of docs/zoo.md.
 check-zoo-extra:
 	bash .ci/check_zoo_extra.sh
+
+# The sdist unpacked outside the repository: its own fast tests run there.
+check-sdist: $(DEV)
+	PYTHON=$(abspath $(PYTHON)) bash .ci/check_sdist.sh

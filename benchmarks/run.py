@@ -703,8 +703,8 @@ def _run_ray(jobs: Sequence[Job], address: str, workers: int, on_result: Callabl
         import ray
     except ImportError as error:
         raise SystemExit(
-            "--ray-address needs Ray, which is not installed: pip install '.[distributed]' in a checkout "
-            "(or 'ray>=2.9')"
+            "--ray-address needs Ray, which is not installed: make setup (the dev group of pyproject.toml) or "
+            "pip install 'ray>=2.9'"
         ) from error
     started_here = not ray.is_initialized()
     if started_here:

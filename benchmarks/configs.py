@@ -20,6 +20,8 @@ from typing import Any, Literal
 
 import yaml
 
+from sb3_nfq.configs import read_entry
+
 AlgoKind = Literal["nfq", "reference", "dqn"]
 
 #: Every env of the given config (an entry for a specific env id takes precedence).
@@ -67,24 +69,10 @@ ZOO_DQN_BUDGETS: dict[str, int] = {
     "LunarLander-v3": 100_000,
 }
 
-#: Found on CartPole-v1 by benchmarks/tune_nfq_cartpole.py (config "k8", results in
-#: benchmarks/results/tuning_cartpole.jsonl): a growing memory, 256 steps per round, 8 fitted iterations per round
-#: (each an epoch of 256-transition mini-batches against targets fixed for the iteration), Adam 1e-3, a 64-64
-#: network, ε decaying 1 -> 0.04 over the first 16% of the budget.
+#: nfq-shared's settings (sb3_nfq/hyperparams/nfq-shared.yml, where they are described), without the budget: the
+#: base the tuned configs and tuning candidates start from.
 GROWING_MEMORY_CONFIG: dict[str, Any] = {
-    "memory": "growing",
-    "target_mode": "fixed_per_iteration",
-    "train_freq": 256,
-    "gradient_steps": 8,
-    "batch_size": 256,
-    "gamma": 0.99,
-    "loss": "mse",
-    "max_grad_norm": 10.0,
-    "learning_rate": 1e-3,
-    "exploration_initial_eps": 1.0,
-    "exploration_final_eps": 0.04,
-    "exploration_fraction": 0.16,
-    "policy_kwargs": "dict(net_arch=[64, 64], optimizer_class=th.optim.Adam)",
+    key: value for key, value in read_entry("nfq-shared", "CartPole-v1").items() if key != "n_timesteps"
 }
 
 #: NFQ configs: name -> {env id or ALL_ENVS: kwargs for NFQ}.
@@ -127,11 +115,8 @@ NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
             "n_timesteps": ZOO_DQN_BUDGETS["LunarLander-v3"],
         },
     },
-    # ONE config for all four envs: the CartPole-tuned GROWING_MEMORY_CONFIG, unchanged; only the budget is the
-    # env's (the Zoo's DQN budget there).
-    "nfq-shared": {
-        env_id: {**GROWING_MEMORY_CONFIG, "n_timesteps": budget} for env_id, budget in ZOO_DQN_BUDGETS.items()
-    },
+    # ONE config for all four envs (sb3_nfq/hyperparams/nfq-shared.yml).
+    "nfq-shared": {env_id: read_entry("nfq-shared", env_id) for env_id in ZOO_DQN_BUDGETS},
 }
 
 #: (config, env id or ALL_ENVS) entries that are still placeholders: the results file and the report flag them.

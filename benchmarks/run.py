@@ -49,10 +49,10 @@ from typing import TYPE_CHECKING, Any
 import gymnasium as gym
 import numpy as np
 import torch as th
-from torch import nn
 
 from benchmarks import configs
 from sb3_nfq.callbacks import StopTrainingOnBookCriterion
+from sb3_nfq.configs import zoo_to_kwargs
 
 if TYPE_CHECKING:
     from stable_baselines3.common.vec_env import VecEnv
@@ -418,33 +418,8 @@ class Trained:
     diverged: str | None = None
 
 
-def _linear_schedule(initial: float) -> Callable[[float], float]:
-    def schedule(progress_remaining: float) -> float:
-        return progress_remaining * initial
-
-    return schedule
-
-
-def sb3_kwargs(kwargs: dict[str, Any]) -> dict[str, Any]:
-    """
-    Turn Zoo-style plain-data kwargs into constructor kwargs, as the RL Zoo's ExperimentManager does:
-    ``policy_kwargs`` strings are evaluated (with ``dict``, ``nn`` and ``th`` in scope), ``"lin_<x>"`` learning
-    rates become linear schedules, ``train_freq`` lists become tuples.
-
-    :param kwargs: the config's kwargs (without ``n_envs``/``policy``)
-    :return: kwargs for the SB3 constructor
-    """
-    out = dict(kwargs)
-    if isinstance(out.get("policy_kwargs"), str):
-        out["policy_kwargs"] = eval(out["policy_kwargs"], {"__builtins__": {}, "dict": dict, "nn": nn, "th": th})
-    if isinstance(out.get("learning_rate"), str):
-        kind, value = out["learning_rate"].split("_")
-        if kind != "lin":
-            raise ValueError(f"unknown learning-rate schedule {out['learning_rate']!r} (the Zoo's 'lin_<x>' only)")
-        out["learning_rate"] = _linear_schedule(float(value))
-    if isinstance(out.get("train_freq"), list):
-        out["train_freq"] = tuple(out["train_freq"])
-    return out
+#: Zoo-style plain data to constructor kwargs (kept under this name for the runner's callers).
+sb3_kwargs = zoo_to_kwargs
 
 
 def _jsonable(value: Any) -> Any:

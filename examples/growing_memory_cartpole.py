@@ -18,28 +18,13 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_nfq import NFQ
+from sb3_nfq.configs import nfq_kwargs
 
-#: The growing-memory settings measured in benchmarks/ ("nfq-shared", the one config run unchanged on all four envs;
-#: found on CartPole-v1 by benchmarks/tune_nfq_cartpole.py): every transition kept, a round every 256 steps, 8
-#: minibatch iterations per round against targets fixed for the round, Adam, a 64-64 network, exploration decaying
-#: from 1 to 0.04 over the first 16%. benchmarks/ "nfq-tuned" on CartPole-v1 adds a 256-256 network, lr 2.3e-3 and a
-#: round every 128 steps: fewer env steps to solve, for more fitting work per env step (training seconds of both in
-#: benchmarks/results/README.md).
-GROWING_MEMORY_NFQ: dict[str, Any] = {
-    "memory": "growing",
-    "target_mode": "fixed_per_iteration",
-    "train_freq": 256,
-    "gradient_steps": 8,
-    "batch_size": 256,
-    "gamma": 0.99,
-    "loss": "mse",
-    "max_grad_norm": 10.0,
-    "learning_rate": 1e-3,
-    "exploration_initial_eps": 1.0,
-    "exploration_final_eps": 0.04,
-    "exploration_fraction": 0.16,
-    "policy_kwargs": {"net_arch": [64, 64], "optimizer_class": th.optim.Adam},
-}
+#: The growing-memory settings measured in benchmarks/ as "nfq-shared", the one config run unchanged on all four envs
+#: (sb3_nfq/hyperparams/nfq-shared.yml says what they are): every transition kept, a round every 256 steps, 8
+#: mini-batch iterations per round against targets fixed for the iteration, Adam, a 64-64 network, exploration
+#: decaying from 1 to 0.04 over the first 16% of the budget.
+GROWING_MEMORY_NFQ: dict[str, Any] = nfq_kwargs("nfq-shared", "CartPole-v1")
 
 
 class RecordEvaluations(BaseCallback):

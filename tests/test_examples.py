@@ -78,11 +78,3 @@ def test_offline_minari_example_records_a_local_dataset_and_fits_it(tmp_path: Pa
 def test_growing_memory_example_keeps_every_transition(capsys: pytest.CaptureFixture[str]) -> None:
     _main("growing_memory_cartpole.py")(["--total-timesteps", "2048"])
     assert "Memory holds 2048 transitions after 2048 steps. 2 evaluations;" in capsys.readouterr().out
-
-
-def test_growing_memory_example_uses_the_benchmarked_config() -> None:
-    from benchmarks import configs, run
-
-    example_config = runpy.run_path(str(EXAMPLES / "growing_memory_cartpole.py"))["GROWING_MEMORY_NFQ"]
-    benchmarked = run.sb3_kwargs(configs.resolve("nfq-shared", "CartPole-v1").kwargs)
-    assert example_config == benchmarked

@@ -1,4 +1,4 @@
-"""Learning: the textbook defaults solve CartPole-v1. Slow (minutes); CI runs it."""
+"""Learning: the textbook defaults solve CartPole-v1; the quickstart balances the pole. Slow (minutes); CI runs it."""
 
 import pytest
 from stable_baselines3.common.callbacks import EvalCallback, StopTrainingOnRewardThreshold
@@ -31,3 +31,12 @@ def test_textbook_defaults_solve_cartpole_within_300k_steps() -> None:
     mean_return, _ = evaluate_policy(model, make_vec_env("CartPole-v1", n_envs=100, seed=20_000), n_eval_episodes=100)
     assert isinstance(mean_return, float)
     assert mean_return >= 0.8 * SOLVED_AT
+
+
+@pytest.mark.slow
+def test_the_quickstart_ends_with_an_agent_that_balances_the_pole() -> None:
+    import runpy
+    from pathlib import Path
+
+    quickstart = runpy.run_path(str(Path(__file__).resolve().parent.parent / "examples" / "quickstart.py"))["main"]
+    assert quickstart([]) >= SOLVED_AT  # its defaults: 20k steps of the growing memory, 20 greedy episodes

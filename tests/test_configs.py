@@ -1,0 +1,40 @@
+"""The configs shipped as data (sb3_nfq/hyperparams/*.yml) and their reading into NFQ's keyword arguments."""
+
+import pytest
+import torch as th
+
+from sb3_nfq import NFQ
+from sb3_nfq.configs import config_names, nfq_kwargs, read_entry, zoo_to_kwargs
+
+
+def test_shipped_configs_include_the_zoo_file_and_nfq_shared() -> None:
+    assert {"nfq", "nfq-shared"} <= set(config_names())
+
+
+def test_an_entry_becomes_nfq_keyword_arguments() -> None:
+    entry = read_entry("nfq-shared", "Acrobot-v1")
+    assert entry["n_timesteps"] == 100_000 and isinstance(entry["policy_kwargs"], str)
+    kwargs = nfq_kwargs("nfq-shared", "Acrobot-v1")
+    assert "n_timesteps" not in kwargs and kwargs["policy_kwargs"]["optimizer_class"] is th.optim.Adam
+    model = NFQ("MlpPolicy", "Acrobot-v1", **kwargs)
+    assert model.memory == "growing" and model.batch_size == 256
+    # one config for every env: the entries differ in their budget only
+    cartpole = read_entry("nfq-shared", "CartPole-v1")
+    assert {key: value for key, value in entry.items() if key != "n_timesteps"} == {
+        key: value for key, value in cartpole.items() if key != "n_timesteps"
+    }
+
+
+def test_zoo_strings_become_objects() -> None:
+    kwargs = zoo_to_kwargs({"learning_rate": "lin_1e-3", "train_freq": [2, "episode"], "policy_kwargs": "dict(a=1)"})
+    assert kwargs["learning_rate"](0.5) == pytest.approx(5e-4)
+    assert kwargs["train_freq"] == (2, "episode") and kwargs["policy_kwargs"] == {"a": 1}
+    with pytest.raises(ValueError, match="unknown learning-rate schedule"):
+        zoo_to_kwargs({"learning_rate": "exp_1e-3"})
+
+
+def test_unknown_names_and_envs_are_refused_clearly() -> None:
+    with pytest.raises(KeyError, match="no config named 'nfq-best'"):
+        read_entry("nfq-best", "CartPole-v1")
+    with pytest.raises(KeyError, match="has no entry for Pong-v5"):
+        read_entry("nfq-shared", "Pong-v5")

@@ -15,7 +15,7 @@ import pytest
 import torch as th
 from torch.nn import functional as F
 
-from benchmarks import configs, memory_images, overhead, report, run, tune_nfq
+from benchmarks import configs, memory_images, overhead, report, run, scaling, tune_nfq
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
 
 RESULT_FIELDS = {
@@ -612,3 +612,32 @@ def test_readme_memory_table_is_the_generated_one() -> None:
     payload = json.loads(memory_images.DEFAULT_OUT.read_text())
     text = memory_images.README.read_text()
     assert memory_images.update_readme(text, memory_images.table(payload["results"])) == text
+
+
+# --- scaling of the growing memory's cost -------------------------------------------------------------------------
+
+
+def test_scaling_script_times_every_fit_of_both_modes(tmp_path: Path) -> None:
+    out = tmp_path / "scaling.json"
+    assert scaling.main(["--max-steps", "2048", "--round-fraction", "0.5", "--out", str(out)]) == 0
+    payload = json.loads(out.read_text())
+    fixed, lengthening = payload["fits"].values()
+    assert [fit["memory"] for fit in fixed] == [256 * i for i in range(1, 9)]
+    # rounds of max(256, 0.5 x memory): 256, 256, 256, 384, 576; the last 320 steps wait for their round's end
+    assert [fit["memory"] for fit in lengthening] == [256, 512, 768, 1152, 1728]
+    assert payload["torch_threads"] == 1 and out.with_suffix(".md").read_text().startswith("| memory")
+
+
+def test_scaling_bins_divide_fit_seconds_by_the_steps_collected_in_each_bin() -> None:
+    fits = [
+        {"steps": 5_000.0, "memory": 5_000.0, "seconds": 1.0},
+        {"steps": 10_000.0, "memory": 10_000.0, "seconds": 2.0},
+        {"steps": 16_000.0, "memory": 16_000.0, "seconds": 3.0},
+        {"steps": 20_000.0, "memory": 20_000.0, "seconds": 3.0},
+    ]
+    rows = scaling.per_bin(fits)
+    assert [(row["memory_up_to"], row["steps"], row["seconds"]) for row in rows] == [
+        (10_000, 10_000.0, 3.0),
+        (20_000, 10_000.0, 6.0),
+    ]
+    assert [row["per_1000_steps"] for row in rows] == [0.3, 0.6]

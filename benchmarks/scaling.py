@@ -1,0 +1,154 @@
+"""
+How the growing memory's fitting cost scales: fit seconds per 1,000 env steps against the memory's size, for fixed
+rounds (``nfq-shared``: a refit every 256 steps) and for rounds that lengthen with the memory (``round_fraction``).
+
+    python -m benchmarks.scaling [--env CartPole-v1] [--max-steps 200000] [--round-fraction 0.1] [--seed 0]
+        [--out benchmarks/results/scaling.json]
+
+One run per mode, one after the other in this process (1 torch thread). Every fit is timed; the fits are then
+grouped by the memory size they ran at (bins ending at 10k, 20k, 50k, 100k, 200k transitions) and each bin reports
+its fit seconds per 1,000 env steps collected in it. A mode whose cost per collected step stays flat as the memory
+grows has a total cost linear in the steps; with fixed rounds it grows with the memory.
+"""
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import torch as th
+
+from sb3_nfq import NFQ
+from sb3_nfq.configs import nfq_kwargs
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_OUT = REPO_ROOT / "benchmarks" / "results" / "scaling.json"
+#: Upper ends of the memory-size bins, in transitions.
+BINS = (10_000, 20_000, 50_000, 100_000, 200_000)
+
+
+def timed_run(env_id: str, kwargs: dict[str, Any], max_steps: int, seed: int) -> list[dict[str, float]]:
+    """
+    :param env_id: gymnasium env id (made with no render mode)
+    :param kwargs: NFQ's keyword arguments
+    :param max_steps: env steps to train
+    :param seed: seed
+    :return: one record per fit: env steps and memory size when it ran, its seconds
+    """
+    model = NFQ("MlpPolicy", gym.make(env_id), seed=seed, device="cpu", **kwargs)
+    fits: list[dict[str, float]] = []
+    fit = model.train
+
+    def timed_fit(gradient_steps: int, batch_size: int | None = None) -> None:
+        start = time.perf_counter()
+        fit(gradient_steps, batch_size)
+        fits.append(
+            {
+                "steps": model.num_timesteps,
+                "memory": model.replay_buffer.size() * model.n_envs,
+                "seconds": time.perf_counter() - start,
+            }
+        )
+
+    model.train = timed_fit  # type: ignore[method-assign]  # time each fit of this one model
+    model.learn(max_steps)
+    return fits
+
+
+def per_bin(fits: Sequence[dict[str, float]], bins: Sequence[int] = BINS) -> list[dict[str, float]]:
+    """
+    :param fits: the fits of one run, in order
+    :param bins: upper ends of the memory-size bins
+    :return: for each bin with fits: env steps collected and fit seconds spent while the memory was in it, and
+        their ratio per 1,000 steps
+    """
+    rows, low = [], 0
+    for high in bins:
+        inside = [fit for fit in fits if low < fit["memory"] <= high]
+        if inside:
+            first = fits.index(inside[0])
+            start = fits[first - 1]["steps"] if first > 0 else 0.0
+            steps = inside[-1]["steps"] - start
+            seconds = sum(fit["seconds"] for fit in inside)
+            rows.append(
+                {"memory_up_to": high, "steps": steps, "seconds": seconds, "per_1000_steps": 1000 * seconds / steps}
+            )
+        low = high
+    return rows
+
+
+def table(runs: dict[str, list[dict[str, float]]]) -> str:
+    """:return: the markdown table: one row per bin, one column per mode"""
+    names = list(runs)
+    header = "| memory (transitions) | " + " | ".join(f"{name}: fit s per 1,000 steps" for name in names) + " |"
+    lines = [header, "|---|" + "---|" * len(names)]
+    by_bin: dict[int, dict[str, float]] = {}
+    for name, rows in runs.items():
+        for row in rows:
+            by_bin.setdefault(int(row["memory_up_to"]), {})[name] = row["per_1000_steps"]
+    low = 0
+    for high in sorted(by_bin):
+        cells = [f"{by_bin[high][name]:.2f}" if name in by_bin[high] else "—" for name in names]
+        lines.append(f"| {low:,}-{high:,} | " + " | ".join(cells) + " |")
+        low = high
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    Command-line entry point.
+
+    :param argv: arguments (default: ``sys.argv[1:]``)
+    :return: exit status
+    """
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="CartPole-v1")
+    parser.add_argument("--max-steps", type=int, default=BINS[-1])
+    parser.add_argument("--round-fraction", type=float, default=0.1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    args = parser.parse_args(argv)
+    th.set_num_threads(1)
+    shared = nfq_kwargs("nfq-shared", args.env)
+    # a buffer as large as the run, so the memory never drops transitions
+    modes = {
+        "nfq-shared (fixed rounds)": {**shared, "buffer_size": args.max_steps},
+        f"nfq-shared, round_fraction={args.round_fraction:g}": {
+            **shared,
+            "buffer_size": args.max_steps,
+            "round_fraction": args.round_fraction,
+        },
+    }
+    runs: dict[str, list[dict[str, float]]] = {}
+    raw: dict[str, list[dict[str, float]]] = {}
+    for name, kwargs in modes.items():
+        raw[name] = timed_run(args.env, kwargs, args.max_steps, args.seed)
+        runs[name] = per_bin(raw[name])
+        print(f"{name}: {len(raw[name])} fits, {sum(fit['seconds'] for fit in raw[name]):.1f} s", flush=True)
+    from benchmarks.run import machine_line, package_versions
+
+    payload = {
+        "command": " ".join(["python -m benchmarks.scaling", *(argv if argv is not None else sys.argv[1:])]),
+        "env": args.env,
+        "max_steps": args.max_steps,
+        "seed": args.seed,
+        "torch_threads": th.get_num_threads(),
+        "machine": machine_line(),
+        "versions": package_versions(),
+        "bins": runs,
+        "fits": raw,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(payload, indent=1) + "\n")
+    block = table(runs)
+    args.out.with_suffix(".md").write_text(block + "\n")
+    print(block)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -17,7 +17,7 @@ LOWEST ?= .venv-lowest
 LOWEST_TESTS := tests/test_fitting.py tests/test_contract.py tests/test_sb3_integration.py tests/test_sb3_usage.py \
 	tests/test_variants.py tests/test_bad_input.py tests/test_save_load.py tests/test_callbacks.py
 
-.PHONY: setup solve test lint test-lowest check-zoo-extra check-sdist
+.PHONY: setup solve test lint docs test-lowest check-zoo-extra check-sdist
 
 setup: $(DEV)
 
@@ -37,6 +37,10 @@ solve: $(CORE)
 
 test: $(DEV)
 	$(PYTHON) -m pytest -p no:cacheprovider
+
+# The API documentation (Sphinx, SB3's layout), warnings as errors: docs/_build/html/index.html
+docs: $(DEV)
+	$(PYTHON) -m sphinx -W --keep-going -q -b html docs docs/_build/html
 
 lint: $(DEV)
 	$(PYTHON) -m ruff check .

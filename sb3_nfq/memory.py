@@ -9,8 +9,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.vec_env import VecNormalize
 
 #: Most bytes of float32 network input in one forward pass over the memory (target passes, and the chunks a
 #: full-batch gradient is accumulated over): a whole CartPole memory of millions of rows, a few hundred 84x84x4 frames.
@@ -83,8 +85,41 @@ def rows_per_chunk(observations: Any) -> int:
     return max(1, CHUNK_BYTES // max(1, row_bytes))
 
 
-def take_rows(observations: Any, rows: th.Tensor | slice) -> Any:
-    """:return: the given rows of observations (a tensor, or a dict of tensors)"""
-    if isinstance(observations, dict):
-        return {key: value[rows] for key, value in observations.items()}
-    return observations[rows]
+def flatten(buffer: BaseBuffer, array: np.ndarray) -> np.ndarray:
+    """
+    :param buffer: an SB3 buffer
+    :param array: one of its arrays, ``(rows, n_envs, ...)``
+    :return: its stored rows, one row per transition (step-major, then env); a view, not a copy
+    """
+    n_rows = buffer.buffer_size if buffer.full else buffer.pos
+    return array[:n_rows].reshape(n_rows * buffer.n_envs, *array.shape[2:])
+
+
+def stored_transitions(buffer: ReplayBuffer, vec_normalize_env: VecNormalize | None = None) -> ReplayBufferSamples:
+    """
+    :param buffer: NFQ's memory (or a dataset's buffer)
+    :param vec_normalize_env: normalises observations and rewards for the fit, as SB3's ``sample`` does
+    :return: every transition in the buffer, in its row order (step-major, then env: collection order until a
+        growing memory is full, after which new rows overwrite the oldest in place), as tensors that share the
+        buffer's memory on the CPU (no copy of the memory per round). ``dones`` is 1 only for true terminations:
+        time-limit truncations bootstrap.
+    """
+
+    def flat_obs(obs: np.ndarray | dict[str, np.ndarray]) -> Any:
+        if isinstance(obs, dict):
+            normalized = buffer._normalize_obs(
+                {key: flatten(buffer, value) for key, value in obs.items()}, vec_normalize_env
+            )
+            assert isinstance(normalized, dict)
+            return {key: buffer.to_torch(value, copy=False) for key, value in normalized.items()}
+        return buffer.to_torch(buffer._normalize_obs(flatten(buffer, obs), vec_normalize_env), copy=False)  # type: ignore[arg-type]
+
+    terminated = flatten(buffer, buffer.dones) * (1 - flatten(buffer, buffer.timeouts))
+    rewards = buffer._normalize_reward(flatten(buffer, buffer.rewards).reshape(-1, 1), vec_normalize_env)
+    return ReplayBufferSamples(
+        observations=flat_obs(buffer.observations),
+        actions=buffer.to_torch(flatten(buffer, buffer.actions)),
+        next_observations=flat_obs(buffer.next_observations),
+        dones=buffer.to_torch(terminated.reshape(-1, 1)),
+        rewards=buffer.to_torch(rewards),
+    )

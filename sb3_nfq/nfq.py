@@ -1,10 +1,8 @@
 """Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 off-policy algorithm."""
 
-import contextlib
 import io
 import math
 import pathlib
-from collections.abc import Iterator
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -27,7 +25,8 @@ from stable_baselines3.common.type_aliases import (
 )
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
-from sb3_nfq.memory import check_memory_fits, rows_per_chunk, take_rows
+from sb3_nfq.fitting import eval_mode, has_mode_dependent_layers, minibatch_indices, take, take_rows
+from sb3_nfq.memory import check_memory_fits, rows_per_chunk, stored_transitions
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.parameters import (
     LOSSES,
@@ -35,6 +34,7 @@ from sb3_nfq.parameters import (
     MemoryName,
     TargetModeName,
     check_action_space,
+    check_full_batch_optimizer,
     check_hyperparameters,
     reject_dqn_parameters,
 )
@@ -450,24 +450,32 @@ class NFQ(OffPolicyAlgorithm):
                 "NFQ's memory is empty: there is nothing to fit. Collect transitions with learn(), load them with "
                 "load_replay_buffer(), or fit a dataset with fit_offline()."
             )
+        self._fit(self._stored_transitions(), self.replay_buffer.n_envs, gradient_steps, batch_size)
+
+    def _fit(self, batch: ReplayBufferSamples, n_envs: int, gradient_steps: int, batch_size: int | None) -> None:
+        """
+        :param batch: the transitions to fit on, one row per transition (step-major, then env)
+        :param n_envs: how many envs the rows interleave (a transition's next state is ``n_envs`` rows on)
+        :param gradient_steps: Number of fitted iterations
+        :param batch_size: ``None``: one full-batch step per epoch; else shuffled mini-batches of this size
+        """
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
-        batch = self._stored_transitions()
         n_transitions = len(batch.rewards)
         self._n_rounds += 1
         full_batch = batch_size is None or batch_size >= n_transitions
         # Reading Q(s', .) off the Q(s, .) pass needs that pass to cover the whole memory at once, and a network
         # that computes the same in training and eval mode.
         one_pass = n_transitions <= rows_per_chunk(batch.observations)
-        share = full_batch and one_pass and not _has_mode_dependent_layers(self.q_net)
-        shared_states = self._states_and_successors(batch) if share else None
+        share = full_batch and one_pass and not has_mode_dependent_layers(self.q_net)
+        shared_states = self._states_and_successors(batch, n_envs) if share else None
 
         losses = []
         for iteration in range(gradient_steps):
             fixed_targets = self._td_targets(batch) if self.target_mode == "fixed_per_iteration" else None
             for _ in range(self.fit_epochs):
-                for indices in _minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
-                    data = _take(batch, indices)
+                for indices in minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
+                    data = take(batch, indices)
                     self.policy.optimizer.zero_grad()
                     loss_value, q_values, targets = self._loss_and_gradient(data, indices, fixed_targets, shared_states)
                     if not math.isfinite(loss_value):
@@ -559,7 +567,7 @@ class NFQ(OffPolicyAlgorithm):
             targets = self._td_targets(data)
         return th.gather(self.q_net(data.observations), dim=1, index=data.actions.long()), targets
 
-    def _states_and_successors(self, batch: ReplayBufferSamples) -> tuple[th.Tensor, th.Tensor] | None:
+    def _states_and_successors(self, batch: ReplayBufferSamples, n_envs: int) -> tuple[th.Tensor, th.Tensor] | None:
         """
         In a round, the next state of a transition is usually the state of the same env's next transition
         (``n_envs`` rows later): only episode ends and the last steps bring new states. So the targets need a
@@ -567,6 +575,7 @@ class NFQ(OffPolicyAlgorithm):
         the same numbers as a pass over every ``s'``, for about half the work.
 
         :param batch: the whole memory
+        :param n_envs: how many envs the rows interleave
         :return: ``(new_next_observations, next_rows)``: the ``s'`` not found among the ``s``, and for each
             transition ``i`` the row of ``cat([Q(s, .), Q(new_next_observations, .)])`` holding ``Q(s'_i, .)``.
             ``None`` for ``Dict`` observations.
@@ -574,7 +583,7 @@ class NFQ(OffPolicyAlgorithm):
         observations, next_observations = batch.observations, batch.next_observations
         if isinstance(observations, dict) or isinstance(next_observations, dict):
             return None
-        n_transitions, offset = len(observations), self.replay_buffer.n_envs
+        n_transitions, offset = len(observations), n_envs
         is_next_state = th.zeros(n_transitions, dtype=th.bool, device=observations.device)
         if n_transitions > offset:
             successors = next_observations[:-offset] == observations[offset:]
@@ -591,7 +600,7 @@ class NFQ(OffPolicyAlgorithm):
             Dropout, BatchNorm's running statistics used and left as they are), as a constant (no graph), shape
             ``(n, 1)``; computed in chunks so a large memory fits in memory.
         """
-        with th.no_grad(), _eval_mode(self.q_net):
+        with th.no_grad(), eval_mode(self.q_net):
             n_transitions = len(data.rewards)
             chunk_rows = rows_per_chunk(data.next_observations)
             if n_transitions <= chunk_rows:
@@ -605,20 +614,15 @@ class NFQ(OffPolicyAlgorithm):
             return data.rewards + (1 - data.dones) * self.gamma * next_q_values
 
     def _check_optimizer_gets_full_batches(self) -> None:
-        """Rprop adapts per-weight step sizes from the signs of successive gradients: they must be full-batch."""
-        if not isinstance(self.policy.optimizer, th.optim.Rprop) or self.batch_size is None:
-            return
-        round_transitions = self._round_length().frequency * self.n_envs
-        if (
-            self.memory == "growing"
-            or self._round_length().unit == TrainFrequencyUnit.EPISODE
-            or (self.batch_size < round_transitions)
-        ):
-            raise ValueError(
-                f"Rprop needs full-batch gradients, but batch_size={self.batch_size} would give it mini-batches "
-                f"(memory={self.memory!r}). Use batch_size=None with Rprop, or another optimizer_class "
-                "(RMSprop, Adam) for mini-batches."
-            )
+        """Refuse a ``batch_size`` that would split a round's fit into mini-batches for Rprop."""
+        round_length = self._round_length()
+        bounded = self.memory == "fresh" and round_length.unit == TrainFrequencyUnit.STEP
+        check_full_batch_optimizer(
+            self.policy.optimizer,
+            self.batch_size,
+            round_length.frequency * self.n_envs if bounded else None,
+            f"a round's fit (memory={self.memory!r})",
+        )
 
     @classmethod
     def for_dataset(
@@ -655,54 +659,18 @@ class NFQ(OffPolicyAlgorithm):
         iterations = self.gradient_steps if iterations is None else iterations
         if not isinstance(iterations, int) or iterations <= 0:
             raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
-        if (
-            isinstance(self.policy.optimizer, th.optim.Rprop)
-            and self.batch_size is not None
-            and self.batch_size < len(dataset)
-        ):
-            raise ValueError(
-                f"Rprop needs full-batch gradients, but batch_size={self.batch_size} would split the dataset's "
-                f"{len(dataset)} transitions into mini-batches. Use batch_size=None with Rprop."
-            )
+        check_full_batch_optimizer(
+            self.policy.optimizer, self.batch_size, len(dataset), f"the dataset's {len(dataset)} transitions"
+        )
         if not hasattr(self, "_logger"):
             self.set_logger(configure_logger(self.verbose, self.tensorboard_log, "NFQ_offline"))
-        online_memory, self.replay_buffer = self.replay_buffer, dataset.to_replay_buffer(self.device)
-        try:
-            self.train(gradient_steps=iterations, batch_size=self.batch_size)
-        finally:
-            self.replay_buffer = online_memory
+        self._fit(stored_transitions(dataset.to_replay_buffer(self.device)), 1, iterations, self.batch_size)
         self.logger.dump(step=self.num_timesteps)
         return self
 
     def _stored_transitions(self) -> ReplayBufferSamples:
-        """
-        :return: Every transition in the memory, in the buffer's row order (step-major, then env: collection order
-            until a growing memory is full, after which new rows overwrite the oldest in place), as tensors that
-            share the buffer's memory on the CPU (no copy of the memory per round). ``dones`` is 1 only for true
-            terminations: time-limit truncations bootstrap.
-        """
-        buffer = self.replay_buffer
-        n_rows = buffer.buffer_size if buffer.full else buffer.pos
-        env = self._vec_normalize_env
-
-        def flat(array: np.ndarray) -> np.ndarray:
-            return array[:n_rows].reshape(n_rows * buffer.n_envs, *array.shape[2:])
-
-        def flat_obs(obs: np.ndarray | dict[str, np.ndarray]) -> Any:
-            if isinstance(obs, dict):
-                normalized = buffer._normalize_obs({key: flat(value) for key, value in obs.items()}, env)
-                assert isinstance(normalized, dict)
-                return {key: buffer.to_torch(value, copy=False) for key, value in normalized.items()}
-            return buffer.to_torch(buffer._normalize_obs(flat(obs), env), copy=False)  # type: ignore[arg-type]
-
-        terminated = flat(buffer.dones) * (1 - flat(buffer.timeouts))
-        return ReplayBufferSamples(
-            observations=flat_obs(buffer.observations),
-            actions=buffer.to_torch(flat(buffer.actions)),
-            next_observations=flat_obs(buffer.next_observations),
-            dones=buffer.to_torch(terminated.reshape(-1, 1)),
-            rewards=buffer.to_torch(buffer._normalize_reward(flat(buffer.rewards).reshape(-1, 1), env)),
-        )
+        """:return: every transition in the memory, as :func:`~sb3_nfq.memory.stored_transitions` gives them"""
+        return stored_transitions(self.replay_buffer, self._vec_normalize_env)
 
     def _on_step(self) -> None:
         """Update the exploration rate; called by ``collect_rollouts()`` after each environment step."""
@@ -826,58 +794,6 @@ class NFQ(OffPolicyAlgorithm):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "policy.optimizer"], []
-
-
-@contextlib.contextmanager
-def _eval_mode(module: th.nn.Module) -> Iterator[None]:
-    """Put ``module`` in eval mode for the block, then back in the mode it was in."""
-    was_training = module.training
-    module.train(False)
-    try:
-        yield
-    finally:
-        module.train(was_training)
-
-
-def _has_mode_dependent_layers(module: th.nn.Module) -> bool:
-    """:return: whether ``module`` holds layers that compute differently in training mode (BatchNorm, Dropout)"""
-    mode_dependent = (th.nn.modules.batchnorm._NormBase, th.nn.modules.dropout._DropoutNd)
-    return any(isinstance(layer, mode_dependent) for layer in module.modules())
-
-
-def _minibatch_indices(n_transitions: int, batch_size: int | None, device: th.device) -> Iterator[th.Tensor | None]:
-    """
-    :param n_transitions: number of transitions in the memory
-    :param batch_size: ``None`` for the whole memory at once, else the mini-batch size
-    :param device: device of the index tensors
-    :return: ``None`` (the whole memory) once, or the indices of one shuffled epoch of mini-batches
-        that covers every transition exactly once.
-    """
-    if batch_size is None or batch_size >= n_transitions:
-        yield None
-        return
-    yield from th.randperm(n_transitions, device=device).split(batch_size)
-
-
-def _take_obs(observations: Any, indices: th.Tensor | None) -> Any:
-    return observations if indices is None else take_rows(observations, indices)
-
-
-def _take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferSamples:
-    """
-    :param batch: transitions
-    :param indices: which ones (``None``: all)
-    :return: the selected transitions (``discounts``, unused by NFQ, stays ``None``)
-    """
-    if indices is None:
-        return batch
-    return ReplayBufferSamples(
-        observations=_take_obs(batch.observations, indices),
-        actions=batch.actions[indices],
-        next_observations=_take_obs(batch.next_observations, indices),
-        dones=batch.dones[indices],
-        rewards=batch.rewards[indices],
-    )
 
 
 def _check_nfq_checkpoint(path: str | pathlib.Path | io.BufferedIOBase, custom_objects: dict[str, Any] | None) -> None:

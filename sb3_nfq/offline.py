@@ -10,6 +10,8 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.save_util import load_from_pkl
 
+from sb3_nfq.memory import flatten
+
 __all__ = ["TransitionDataset"]
 
 
@@ -114,18 +116,13 @@ class TransitionDataset:
             )
         if buffer.optimize_memory_usage:
             raise ValueError("replay buffers saved with optimize_memory_usage=True are not supported: no next_obs")
-        n_rows = buffer.buffer_size if buffer.full else buffer.pos
-
-        def flat(array: np.ndarray) -> np.ndarray:
-            return array[:n_rows].reshape(n_rows * buffer.n_envs, *array.shape[2:])
-
-        dones = flat(buffer.dones).astype(bool)
-        timeouts = flat(buffer.timeouts).astype(bool)
+        dones = flatten(buffer, buffer.dones).astype(bool)
+        timeouts = flatten(buffer, buffer.timeouts).astype(bool)
         return cls.from_arrays(
-            observations=flat(buffer.observations),
-            actions=flat(buffer.actions),
-            rewards=flat(buffer.rewards),
-            next_observations=flat(buffer.next_observations),
+            observations=flatten(buffer, buffer.observations),
+            actions=flatten(buffer, buffer.actions),
+            rewards=flatten(buffer, buffer.rewards),
+            next_observations=flatten(buffer, buffer.next_observations),
             terminated=dones & ~timeouts,
             truncated=dones & timeouts,
             action_space=buffer.action_space,  # type: ignore[arg-type]  # checked by the validation

@@ -2,6 +2,7 @@
 
 from typing import Any, Literal
 
+import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.type_aliases import Schedule
 from torch.nn import functional as F
@@ -132,3 +133,23 @@ def check_hyperparameters(
             raise ValueError(f"{name} must be a probability in [0, 1], got {eps!r}")
     if max_grad_norm is not None and not max_grad_norm > 0:
         raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")
+
+
+def check_full_batch_optimizer(
+    optimizer: th.optim.Optimizer, batch_size: int | None, n_transitions: int | None, what: str
+) -> None:
+    """
+    Rprop adapts each weight's step from the signs of successive gradients: they must be full-batch.
+
+    :param optimizer: the policy's optimizer
+    :param batch_size: NFQ's ``batch_size``
+    :param n_transitions: how many transitions a fit covers; ``None`` when it can grow past any ``batch_size``
+    :param what: what a fit covers, for the message
+    """
+    if not isinstance(optimizer, th.optim.Rprop) or batch_size is None:
+        return
+    if n_transitions is None or batch_size < n_transitions:
+        raise ValueError(
+            f"Rprop needs full-batch gradients, but batch_size={batch_size} would split {what} into mini-batches. "
+            "Use batch_size=None with Rprop, or another optimizer_class (RMSprop, Adam) for mini-batches."
+        )

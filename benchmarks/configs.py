@@ -119,15 +119,6 @@ NFQ_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
     "nfq-shared": {env_id: read_entry("nfq-shared", env_id) for env_id in ZOO_DQN_BUDGETS},
 }
 
-#: (config, env id or ALL_ENVS) entries that are still placeholders: the results file and the report flag them.
-PLACEHOLDER_CONFIGS: set[tuple[str, str]] = set()
-
-
-def is_placeholder(algo: str, env_id: str) -> bool:
-    """:return: whether config ``algo`` on ``env_id`` is a placeholder awaiting real values"""
-    return (algo, env_id) in PLACEHOLDER_CONFIGS or (algo, ALL_ENVS) in PLACEHOLDER_CONFIGS
-
-
 #: The plain-PyTorch reference (benchmarks/reference_nfq.py): kwargs for ``ReferenceNFQ``.
 REFERENCE_CONFIGS: dict[str, dict[str, dict[str, Any]]] = {"reference-nfq": {ALL_ENVS: {}}}
 
@@ -159,7 +150,6 @@ class ResolvedConfig:
     :param budget: env-step budget
     :param threshold: solve threshold
     :param eval_every: evaluation period in env steps
-    :param placeholder: whether the config is a placeholder awaiting real values
     :param source: where the values come from (for the record)
     """
 
@@ -170,7 +160,6 @@ class ResolvedConfig:
     budget: int
     threshold: float
     eval_every: int
-    placeholder: bool = False
     source: str = ""
 
 
@@ -246,6 +235,5 @@ def resolve(algo: str, env_id: str) -> ResolvedConfig:
         budget=budget,
         threshold=spec.threshold,
         eval_every=spec.eval_every,
-        placeholder=is_placeholder(algo, env_id),
         source=source,
     )

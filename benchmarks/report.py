@@ -137,11 +137,6 @@ class Cell:
         """:return: number of runs (seeds)"""
         return len(self.runs)
 
-    @property
-    def placeholder(self) -> bool:
-        """:return: whether the runs used a placeholder config"""
-        return any(run.get("placeholder_config") for run in self.runs)
-
     def steps(self) -> tuple[np.ndarray, np.ndarray]:
         """:return: steps to solve per run (unsolved: steps trained) and whether each is censored (unsolved)"""
         censored = np.array([run["steps_to_solve"] is None for run in self.runs])
@@ -241,8 +236,6 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
                 other for other in cells if other.algo == cell.algo and other.earlier_config == cell.earlier_config
             ]
             cell.label = _distinct_label(cell, same_algo)
-            if cell.placeholder:
-                cell.label += " *"
         result[env] = cells
     return result
 
@@ -493,12 +486,8 @@ def target_lines(cells_by_env: dict[str, list[Cell]]) -> list[str]:
             )
         )
     lines = ["| target | verdict | measured |", "|---|---|---|"]
-    for name, (verdict, text), algos, envs in targets:
-        placeholder = any(
-            cell.placeholder for env in envs for cell in current_cells(cells_by_env, env) if cell.algo in algos
-        )
-        note = " (placeholder config)" if placeholder else ""
-        lines.append(f"| {name} | **{verdict}**{note} | {text} |")
+    for name, (verdict, text), _, _ in targets:
+        lines.append(f"| {name} | **{verdict}** | {text} |")
     return lines
 
 
@@ -723,12 +712,7 @@ def build_report(
         "still training (a row stopped at solve ends near its median steps to solve).",
         "",
         f"Steps to solve: unsolved runs count as the steps they trained (censored), so a value marked ≥ is a lower "
-        f"bound. IQM and its 95% CI: {ci_method()}."
-        + (
-            " Rows marked * use a placeholder config (the book's settings until tuned values are supplied)."
-            if any(record.get("placeholder_config") for record in records)
-            else ""
-        ),
+        f"bound. IQM and its 95% CI: {ci_method()}.",
         "",
         "## Targets",
         "",

@@ -154,7 +154,6 @@ class Job:
     :param n_eval_episodes: greedy episodes per evaluation
     :param stop_at_solve: stop training at the first solved evaluation
     :param protocol: ``"rounds"`` or ``"book"`` (see :data:`PROTOCOLS`; the book's protocol always stops at solve)
-    :param placeholder: whether the config is a placeholder
     :param source: where the config comes from
     :param command: the runner command that created the job
     :param git: the repository revision of the driver
@@ -171,7 +170,6 @@ class Job:
     n_eval_episodes: int = configs.N_EVAL_EPISODES
     stop_at_solve: bool = False
     protocol: str = "rounds"
-    placeholder: bool = False
     source: str = ""
     command: str = ""
     git: str | None = None
@@ -242,7 +240,6 @@ def make_jobs(
                         n_eval_episodes=n_eval_episodes,
                         stop_at_solve=stop_at_solve or protocol == "book",
                         protocol=protocol,
-                        placeholder=config.placeholder,
                         source=config.source,
                         command=command,
                         git=git,
@@ -604,7 +601,6 @@ def run_job(job: Job) -> dict[str, Any]:
         "kind": job.kind,
         "config": job.kwargs,
         "config_source": job.source,
-        "placeholder_config": job.placeholder,
         "effective_hyperparams": trained.effective,
         "threshold": job.threshold,
         "n_eval_episodes": job.n_eval_episodes,

@@ -172,24 +172,22 @@ def test_dqn_zoo_config_comes_from_rl_zoo3() -> None:
     assert run.parse_seeds(["0-2", "7", "1"]) == [0, 1, 2, 7]
 
 
-def test_nfq_configs_build_nfq_models_and_flag_placeholders() -> None:
+def test_nfq_configs_build_nfq_models() -> None:
     from sb3_nfq import NFQ
 
     tuned = configs.resolve("nfq-tuned", "CartPole-v1")
-    assert tuned.kind == "nfq" and not tuned.placeholder and tuned.budget == 50_000
+    assert tuned.kind == "nfq" and tuned.budget == 50_000
     model = NFQ("MlpPolicy", "CartPole-v1", **run.sb3_kwargs(tuned.kwargs))
     assert isinstance(model.policy.optimizer, th.optim.Adam)
     assert model.memory == "growing" and model.gradient_steps == 8
-    for env_id in configs.ENVS:  # a placeholder is the book's settings; a tuned entry is not
-        entry = configs.NFQ_CONFIGS["nfq-tuned"][env_id]
-        assert configs.resolve("nfq-tuned", env_id).placeholder == (entry == {}), env_id
+    for env_id in configs.ENVS:  # a tuned entry differs from the book's settings everywhere
+        assert configs.NFQ_CONFIGS["nfq-tuned"][env_id] != {}, env_id
     shared = [configs.resolve("nfq-shared", env_id) for env_id in configs.ENVS]
-    assert all(not config.placeholder for config in shared)
     assert all(config.kwargs == shared[0].kwargs for config in shared), "one config for every env"
     assert [config.budget for config in shared] == [
         configs.resolve("dqn-zoo", env_id).budget for env_id in configs.ENVS
     ]
-    assert not configs.resolve("nfq-book", "LunarLander-v3").placeholder
+    assert configs.resolve("nfq-book", "LunarLander-v3").kwargs == {}
 
 
 # --- runner -----------------------------------------------------------------------------------------------------
@@ -347,7 +345,6 @@ def test_report_builds_readme_and_curves(results_file: Path, tmp_path: Path) -> 
     for algo in RUNNER_ALGOS:
         assert f"| {algo} | 2 | 1,024 |" in text
     assert "not enough data" in text  # 2 seeds are not enough to judge a target
-    assert "Rows marked *" not in text  # no placeholder config among the runs
     png = (out_dir / "curves_CartPole-v1.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     width, height = struct.unpack(">II", png[16:24])
@@ -407,15 +404,6 @@ def test_report_book_table_sits_beside_the_books_numbers_and_judges_the_differen
     args = ["--results", str(results_file), "--book-results", str(book_path), "--out-dir", str(tmp_path / "out")]
     assert report.main(args) == 0
     assert "## CartPole-v1 under the book's criterion" in (tmp_path / "out" / "README.md").read_text()
-
-
-def test_report_flags_placeholder_rows(results_file: Path, tmp_path: Path) -> None:
-    records = [dict(record, placeholder_config=record["algo"] == "nfq-book") for record in _lines(results_file)]
-    flagged = tmp_path / "runs.jsonl"
-    flagged.write_text("".join(json.dumps(record) + "\n" for record in records))
-    assert report.main(["--results", str(flagged), "--out-dir", str(tmp_path / "report")]) == 0
-    text = (tmp_path / "report" / "README.md").read_text()
-    assert "Rows marked * use a placeholder config" in text and "| nfq-book * | 2 |" in text
 
 
 def test_report_labels_tell_apart_cells_of_one_algorithm(results_file: Path) -> None:
@@ -524,10 +512,8 @@ def test_every_tuning_candidate_builds_an_nfq_model() -> None:
 
 
 def test_tuned_configs_are_tuning_candidates() -> None:
-    """Every non-placeholder nfq-tuned entry off CartPole is one of the tuning sweep's candidates, unchanged."""
+    """Every nfq-tuned entry is one of the tuning sweep's candidates, unchanged."""
     for env_id, candidates in tune_nfq.CANDIDATES.items():
-        if configs.is_placeholder("nfq-tuned", env_id):
-            continue
         assert configs.NFQ_CONFIGS["nfq-tuned"][env_id] in candidates.values(), env_id
 
 

@@ -42,7 +42,9 @@ MIN_SEEDS = 5
 SHARED_ENVS_TARGET = 3
 #: The book's own NFQ table on CartPole-v1 ("Grokking Deep Reinforcement Learning", chapter 8): its seeds and the
 #: means it prints over them, under its own criterion (the runner's ``--protocol book``).
-BOOK_NFQ_CARTPOLE = {"seeds": (12, 34, 56, 78, 90), "mean_steps": 233_918, "mean_episodes": 2_344}
+BOOK_SEEDS = (12, 34, 56, 78, 90)
+BOOK_MEAN_STEPS = 233_918
+BOOK_MEAN_EPISODES = 2_344
 #: The two implementations the book-protocol table compares: the ratio is ``BOOK_PAIR[0] / BOOK_PAIR[1]``.
 BOOK_PAIR = ("nfq-book", "reference-nfq")
 #: Significance level of the Mann-Whitney test between them.
@@ -603,8 +605,7 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
     cells = book_cells(records)
     if not cells:
         return []
-    book_seeds = BOOK_NFQ_CARTPOLE["seeds"]
-    assert isinstance(book_seeds, tuple)
+    book_seeds = BOOK_SEEDS
     lines = [
         "## CartPole-v1 under the book's criterion",
         "",
@@ -618,7 +619,7 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
         "| train s: median | final score: mean |",
         "|---|---|---|---|---|---|---|---|---|",
         f"| the book, as printed (seeds {', '.join(map(str, book_seeds))}) | {len(book_seeds)} | — "
-        f"| {BOOK_NFQ_CARTPOLE['mean_steps']:,} | — | {BOOK_NFQ_CARTPOLE['mean_episodes']:,} | — | — | — |",
+        f"| {BOOK_MEAN_STEPS:,} | — | {BOOK_MEAN_EPISODES:,} | — | — | — |",
     ]
     for subset_name, subset in (("the book's seeds", set(book_seeds)), ("all seeds", None)):
         for cell in cells:
@@ -637,6 +638,19 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
                 f"{bound}{steps.max():,.0f}] | {bound}{episodes.mean():,.0f} | {bound}{np.median(episodes):,.0f} "
                 f"| {np.median(part.train_seconds()):.1f} | {part.final_scores().mean():.1f} |"
             )
+    against_book = []
+    for cell in cells:
+        runs = [run for run in cell.runs if int(run["seed"]) in set(book_seeds)]
+        if len(runs) == len(book_seeds):
+            part = Cell(cell.env, cell.algo, cell.budget, cell.config_hash, runs)
+            steps_ratio = part.steps()[0].mean() / BOOK_MEAN_STEPS
+            episodes_ratio = _episodes(part).mean() / BOOK_MEAN_EPISODES
+            against_book.append(f"{cell.algo} {steps_ratio:.2f}x its steps and {episodes_ratio:.2f}x its episodes")
+    if against_book:
+        lines += [
+            "",
+            "Mean over the book's five seeds, against the book's printed means: " + "; ".join(against_book) + ".",
+        ]
     by_algo = {cell.algo: cell for cell in cells}
     if all(algo in by_algo for algo in BOOK_PAIR):
         num, den = by_algo[BOOK_PAIR[0]], by_algo[BOOK_PAIR[1]]

@@ -392,6 +392,7 @@ def test_report_book_table_sits_beside_the_books_numbers_and_judges_the_differen
     assert "15 vs 15 seeds" in text and "a difference (p < 0.05): reference-nfq needs fewer steps" in text
     # the book's five seeds: mean steps (200,000 + 201,000 + ... + 204,000) / 5 and episodes a hundredth of that
     assert "| nfq-book, the book's seeds (12, 34, 56, 78, 90) | 5 | 5/5 | 202,000 |" in text
+    assert "nfq-book 0.86x its steps and 0.86x its episodes" in text  # 202,000 / 233,918 and 2,020 / 2,344
 
     alike = [_book_run(record, "nfq-book", seed, 100_000 + 1_000 * i) for i, seed in enumerate(seeds)]
     alike[0] = _book_run(record, "nfq-book", 12, None)  # one unsolved run: its mean is a lower bound

@@ -62,7 +62,7 @@ def table(results: Sequence[dict[str, Any]]) -> str:
     """:return: the markdown table of the runs"""
     lines = [
         "| machine | torch threads | solved at (env steps) | rounds | training + per-round evaluations | whole "
-        "command | greedy mean at the solve | final: 100 new greedy episodes |",
+        "script | greedy mean at the solve | final: 100 new greedy episodes |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for result in results:

@@ -15,7 +15,7 @@ import pytest
 import torch as th
 from torch.nn import functional as F
 
-from benchmarks import configs, memory_images, overhead, report, run, scaling, tune_nfq
+from benchmarks import configs, main_job, memory_images, overhead, report, run, scaling, tune_nfq
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
 
 RESULT_FIELDS = {
@@ -628,3 +628,11 @@ def test_scaling_bins_divide_fit_seconds_by_the_steps_collected_in_each_bin() ->
         (20_000, 10_000.0, 6.0),
     ]
     assert [row["per_1000_steps"] for row in rows] == [0.3, 0.6]
+
+
+def test_readme_main_job_table_is_the_generated_one() -> None:
+    payload = json.loads(main_job.DEFAULT_OUT.read_text())
+    assert [result["busy_process_beside"] for result in payload["results"]] == [False, True]
+    assert all(result["threads"] == 1 for result in payload["results"])
+    text = main_job.README.read_text()
+    assert main_job.update_readme(text, main_job.table(payload["results"])) == text

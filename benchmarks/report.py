@@ -615,6 +615,14 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
         "point; an unsolved run counts as what it trained (≥). Training seconds exclude the evaluation episodes; the "
         "final score is 100 new greedy episodes after training. Both implementations run the textbook settings.",
         "",
+        "Runner command(s): "
+        + "; ".join(f"`{command}`" for command in _unique(list(records), "command"))
+        + ". Torch threads per job: "
+        + ", ".join(str(threads) for threads in _unique(list(records), "torch_threads"))
+        + "; launcher: "
+        + ", ".join(str(launcher) for launcher in _unique(list(records), "launcher"))
+        + ".",
+        "",
         "| implementation | seeds | solved | env steps: mean | median [min, max] | episodes: mean | median "
         "| train s: median | final score: mean |",
         "|---|---|---|---|---|---|---|---|---|",

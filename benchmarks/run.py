@@ -415,10 +415,6 @@ class Trained:
     diverged: str | None = None
 
 
-#: Zoo-style plain data to constructor kwargs (kept under this name for the runner's callers).
-sb3_kwargs = zoo_to_kwargs
-
-
 def _jsonable(value: Any) -> Any:
     if isinstance(value, type):
         return f"{value.__module__}.{value.__qualname__}"
@@ -478,7 +474,7 @@ def _train_sb3(job: Job, tracker: SolveTracker | StopTrainingOnBookCriterion) ->
     policy = kwargs.pop("policy", "MlpPolicy")
     algorithm_class: Any = NFQ if job.kind == "nfq" else DQN
     env = make_training_env(job.env_id, n_envs=n_envs, seed=job.seed)
-    model = algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **sb3_kwargs(kwargs))
+    model = algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs))
 
     def act(observations: np.ndarray) -> np.ndarray:
         return model.predict(observations, deterministic=True)[0]

@@ -17,6 +17,7 @@ from torch.nn import functional as F
 
 from benchmarks import configs, main_job, memory_images, overhead, report, run, scaling, tune_nfq
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
+from sb3_nfq.configs import zoo_to_kwargs
 
 RESULT_FIELDS = {
     "algo": str,
@@ -165,7 +166,7 @@ def test_nfq_fit_equals_the_reference_fit_on_the_same_round(episode_length: int)
 def test_dqn_zoo_config_comes_from_rl_zoo3() -> None:
     config = configs.resolve("dqn-zoo", "CartPole-v1")
     assert config.kind == "dqn" and config.budget == 50_000  # the Zoo's n_timesteps
-    kwargs = run.sb3_kwargs({k: v for k, v in config.kwargs.items() if k != "policy"})
+    kwargs = zoo_to_kwargs({k: v for k, v in config.kwargs.items() if k != "policy"})
     assert kwargs["policy_kwargs"] == {"net_arch": [256, 256]}
     for env_id in configs.ENVS:
         assert configs.resolve("dqn-zoo", env_id).budget > 0
@@ -177,7 +178,7 @@ def test_nfq_configs_build_nfq_models() -> None:
 
     tuned = configs.resolve("nfq-tuned", "CartPole-v1")
     assert tuned.kind == "nfq" and tuned.budget == 50_000
-    model = NFQ("MlpPolicy", "CartPole-v1", **run.sb3_kwargs(tuned.kwargs))
+    model = NFQ("MlpPolicy", "CartPole-v1", **zoo_to_kwargs(tuned.kwargs))
     assert isinstance(model.policy.optimizer, th.optim.Adam)
     assert model.memory == "growing" and model.gradient_steps == 8
     for env_id in configs.ENVS:  # a tuned entry differs from the book's settings everywhere
@@ -508,7 +509,7 @@ def test_every_tuning_candidate_builds_an_nfq_model() -> None:
             job = tune_nfq.candidate_jobs(env_id, [name], [0])[0]
             assert job.stop_at_solve and job.algo == f"tune:{name}"
             assert job.budget == int(candidate.get("n_timesteps", configs.ENVS[env_id].budget))
-            model = NFQ("MlpPolicy", env_id, **run.sb3_kwargs(job.kwargs))
+            model = NFQ("MlpPolicy", env_id, **zoo_to_kwargs(job.kwargs))
             assert model.gamma == candidate.get("gamma", 1.0)
 
 

@@ -15,7 +15,7 @@ import pytest
 import torch as th
 from torch.nn import functional as F
 
-from benchmarks import configs, main_job, memory_images, overhead, report, run, scaling, tune_nfq
+from benchmarks import configs, main_job, memory_images, overhead, readme_blocks, report, run, scaling, tune_nfq
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
 from sb3_nfq.configs import zoo_to_kwargs
 
@@ -598,7 +598,7 @@ def test_memory_images_script_measures_a_run_in_its_own_process(tmp_path: Path) 
 
 def test_readme_memory_table_is_the_generated_one() -> None:
     payload = json.loads(memory_images.DEFAULT_OUT.read_text())
-    text = memory_images.README.read_text()
+    text = readme_blocks.README.read_text()
     assert memory_images.update_readme(text, memory_images.table(payload["results"])) == text
 
 
@@ -635,5 +635,5 @@ def test_readme_main_job_table_is_the_generated_one() -> None:
     payload = json.loads(main_job.DEFAULT_OUT.read_text())
     assert [result["busy_process_beside"] for result in payload["results"]] == [False, True]
     assert all(result["threads"] == 1 for result in payload["results"])
-    text = main_job.README.read_text()
+    text = readme_blocks.README.read_text()
     assert main_job.update_readme(text, main_job.table(payload["results"])) == text

@@ -524,10 +524,7 @@ class NFQ(OffPolicyAlgorithm):
             loss = LOSSES[self.loss](q_values, targets)
             loss.backward()
             return loss.item(), q_values, targets
-        if fixed_targets is not None:
-            targets = fixed_targets if indices is None else fixed_targets[indices]
-        else:
-            targets = self._td_targets(data)
+        targets = self._targets(data, indices, fixed_targets)
         loss_value = 0.0
         for rows in th.arange(n_transitions, device=targets.device).split(chunk_rows):
             q_values = th.gather(self.q_net(take_rows(data.observations, rows)), 1, data.actions[rows].long())
@@ -551,9 +548,7 @@ class NFQ(OffPolicyAlgorithm):
         :param shared_states: from :meth:`_states_and_successors`, to get both in one forward pass, else ``None``
         :return: ``Q(s, a)`` (with its graph) and the TD targets (constants: no gradient flows through them)
         """
-        if fixed_targets is not None:
-            targets = fixed_targets if indices is None else fixed_targets[indices]
-        elif shared_states is not None:
+        if fixed_targets is None and shared_states is not None:
             # Q(s', .) of most transitions is Q(s, .) of a later one: read it, detached, from the pass that
             # computes Q(s, a); only the few other next states need a (gradient-free) pass of their own.
             new_next_observations, next_rows = shared_states
@@ -563,9 +558,21 @@ class NFQ(OffPolicyAlgorithm):
                 next_q_values = q_candidates[next_rows].max(dim=1).values.reshape(-1, 1)
                 targets = data.rewards + (1 - data.dones) * self.gamma * next_q_values
             return th.gather(q_values, dim=1, index=data.actions.long()), targets
-        else:
-            targets = self._td_targets(data)
+        targets = self._targets(data, indices, fixed_targets)
         return th.gather(self.q_net(data.observations), dim=1, index=data.actions.long()), targets
+
+    def _targets(
+        self, data: ReplayBufferSamples, indices: th.Tensor | None, fixed_targets: th.Tensor | None
+    ) -> th.Tensor:
+        """
+        :param data: the transitions of this gradient step
+        :param indices: their rows in the memory (``None``: all of it)
+        :param fixed_targets: the iteration's targets of the whole memory (``"fixed_per_iteration"``), else ``None``
+        :return: their TD targets: the iteration's fixed ones, else computed now with the current network
+        """
+        if fixed_targets is not None:
+            return fixed_targets if indices is None else fixed_targets[indices]
+        return self._td_targets(data)
 
     def _states_and_successors(self, batch: ReplayBufferSamples, n_envs: int) -> tuple[th.Tensor, th.Tensor] | None:
         """

@@ -754,6 +754,42 @@ def parse_seeds(values: Iterable[str]) -> list[int]:
     return list(dict.fromkeys(seeds))
 
 
+def _workers(value: str) -> int:
+    workers = int(value)
+    if workers < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {workers}")
+    return workers
+
+
+def add_job_arguments(parser: argparse.ArgumentParser, default_seeds: str) -> None:
+    """
+    Add the arguments every script that runs jobs takes: ``--seeds``, ``--budget``, ``--eval-episodes``,
+    ``--workers``.
+
+    :param parser: the script's parser
+    :param default_seeds: the seeds it runs by default, e.g. ``"0-4"``
+    """
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        default=[default_seeds],
+        help=f"seeds or ranges, e.g. 0-4 or 0 1 2 (default {default_seeds})",
+    )
+    parser.add_argument("--budget", type=int, help="env-step budget of every job (default: per config and env)")
+    parser.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=configs.N_EVAL_EPISODES,
+        help="greedy episodes per evaluation (default 100, the criterion; fewer only for smoke tests)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=_workers,
+        default=min(2, usable_cores()),
+        help="local worker processes, one job each (default: min(2, cores); 0: run in this process)",
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """
     Command-line entry point.
@@ -765,15 +801,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--algos", nargs="+", default=configs.algorithm_names(), choices=configs.algorithm_names())
     parser.add_argument("--envs", nargs="+", default=list(configs.ENVS), choices=list(configs.ENVS))
-    parser.add_argument("--seeds", nargs="+", default=["0-4"], help="seeds or ranges, e.g. 0-4 or 0 1 2 (default 0-4)")
-    parser.add_argument("--budget", type=int, help="env-step budget for every job (default: per config and env)")
+    add_job_arguments(parser, default_seeds="0-4")
     parser.add_argument("--eval-every", type=int, help="evaluation period in env steps (default: per env, 1024)")
-    parser.add_argument(
-        "--eval-episodes",
-        type=int,
-        default=configs.N_EVAL_EPISODES,
-        help="greedy episodes per evaluation (default 100, the criterion; fewer only for smoke tests)",
-    )
     parser.add_argument("--stop-at-solve", action="store_true", help="stop each job when solved (quick runs)")
     parser.add_argument(
         "--protocol",
@@ -783,12 +812,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         "episode, solved (and stopped) at the mean of the last 100 (the book's code)",
     )
     parser.add_argument(
-        "--workers",
-        type=int,
-        default=min(2, usable_cores()),
-        help="local worker processes, one job each (default: min(2, cores); 0: run in this process)",
-    )
-    parser.add_argument(
         "--results",
         type=Path,
         help="JSON-lines results file (default: runs.jsonl; book_protocol.jsonl with --protocol book)",
@@ -796,8 +819,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--ray-address", help="run the jobs as Ray tasks: 'local', 'auto' or a cluster address")
     parser.add_argument("--dry-run", action="store_true", help="list the jobs to run and exit")
     args = parser.parse_args(argv)
-    if args.workers < 0:
-        parser.error("--workers must be >= 0")
     if args.results is None:
         args.results = DEFAULT_BOOK_RESULTS if args.protocol == "book" else DEFAULT_RESULTS
 

@@ -1,28 +1,24 @@
 """
 Tune NFQ per env: run a few candidate configs on tuning seeds, under the benchmark runner's own protocol, and rank
-them. The winner of an env becomes ``nfq-tuned``'s entry for it in ``benchmarks/configs.py``, which the runner then
-measures on the benchmark seeds (0-4), which tuning never sees.
+them. A winner becomes an entry of a new named config in ``sb3_nfq/hyperparams/`` (such as ``nfq-tuned.yml``), which
+the runner then measures on the benchmark seeds (0-4), which tuning never sees.
 
     python -m benchmarks.tune_nfq --envs CartPole-v1 [Acrobot-v1 ...] [--candidates NAME ...] [--seeds 100-101]
-        [--workers 2] [--results benchmarks/results/tuning_per_env.jsonl] [--list] [--summary-only]
+        [--to-budget] [--workers 2] [--results benchmarks/results/tuning_per_env.jsonl] [--list] [--summary-only]
         [--budget N --eval-episodes N: smoke tests only]
+
+The candidates are data: ``benchmarks/tuning_candidates.yml`` (per env, a name -> a shipped config's entry plus the
+keys that differ; the file says why each was tried).
 
 Protocol: each (candidate, env, seed) is one job of ``benchmarks/run.py`` (same greedy evaluations of 100 episodes
 every ``eval_every`` steps, on CartPole every 256 (see ``TUNING_EVAL_EVERY``), same threshold, one torch thread, one
-spawned process per job), run with ``--stop-at-solve``: tuning looks for the fewest env steps to reach the criterion,
-not for the final score. Results are appended to their own JSON-lines file (``algo`` = ``tune:<candidate>``),
-resumable like the runner's.
+spawned process per job). By default a job stops at the solve (the fewest env steps to reach the criterion);
+``--to-budget`` trains on to the budget, so that the final score shows whether a candidate stays solved. Results are
+appended to their own JSON-lines file (``algo`` = ``tune:<candidate>``), resumable like the runner's.
 
-Ranking, per env: most seeds solved, then the lowest median steps to solve (an unsolved seed counts as the steps it
-trained), then the lowest median training seconds.
-
-The candidates are a handful of hand-picked variations of the configs already benchmarked (the book's settings and
-the CartPole-tuned growing-memory config), each changing what the env's difficulty suggests: exploration and discount
-on Acrobot, the Zoo DQN's memory size and discount on MountainCar, and on LunarLander memory size, refit rate,
-network, loss and the Zoo DQN's exploration. On CartPole, where the shared config solves at about twice the steps of
-DQN's first touch of 475, discount, refit rate, exploration length and the Zoo DQN's network and learning rate, in
-two rounds (the second combining the first round's best with the others). A search this small is affordable on 2
-cores (the shared growing-memory config ran 9-27 minutes to the Zoo's budget off CartPole); the RL Zoo's Optuna
+Ranking, per env: most seeds solved, then most seeds whose final score reaches the threshold, then the lowest median
+steps to solve (an unsolved seed counts as the steps it trained), then the lowest median training seconds.
+A search this small is affordable on 2 cores; the RL Zoo's Optuna
 (``python -m sb3_nfq.zoo train --algo nfq --env ENV -optimize``) searches wider where more CPU is available.
 """
 
@@ -35,140 +31,44 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from benchmarks import configs
-from benchmarks.run import REPO_ROOT, Job, git_revision, parse_seeds, read_results, run_jobs
+from benchmarks.run import REPO_ROOT, Job, add_job_arguments, git_revision, parse_seeds, read_results, run_jobs
+from sb3_nfq.configs import read_entry
 
 DEFAULT_RESULTS = REPO_ROOT / "benchmarks" / "results" / "tuning_per_env.jsonl"
+#: The candidates, as data.
+CANDIDATES_FILE = REPO_ROOT / "benchmarks" / "tuning_candidates.yml"
 #: Seeds for tuning; the benchmark's are 0-4.
 DEFAULT_TUNING_SEEDS = "100-101"
 #: Prefix of a candidate's ``algo`` in the results file.
 ALGO_PREFIX = "tune:"
-
-_SHARED = configs.GROWING_MEMORY_CONFIG
-#: Exploration of the Zoo's DQN on LunarLander-v3 (rl_zoo3 hyperparams/dqn.yml): 1 -> 0.1 over 12% of the budget.
-_ZOO_LUNAR_EXPLORATION = {"exploration_final_eps": 0.1, "exploration_fraction": 0.12}
 
 #: Evaluation period of the tuning jobs where it differs from the benchmark's (``configs.ENVS``). CartPole's
 #: sample-efficiency target is also judged on runs evaluated every 256 steps (the shared config's round length, and
 #: the period at which DQN's early peaks show), the stricter of its two readings: tune for that one.
 TUNING_EVAL_EVERY: dict[str, int] = {"CartPole-v1": 256}
 
-_CARTPOLE_BUDGET = {"n_timesteps": configs.ZOO_DQN_BUDGETS["CartPole-v1"]}
-#: The Zoo DQN's CartPole network and learning rate (rl_zoo3 hyperparams/dqn.yml), fitted with Adam.
-_CARTPOLE_ZOO_NET = {
-    "learning_rate": 2.3e-3,
-    "policy_kwargs": "dict(net_arch=[256, 256], optimizer_class=th.optim.Adam)",
-}
 
-#: env id -> candidate name -> NFQ kwargs (with ``n_timesteps``, the step budget, where not the env's default).
-CANDIDATES: dict[str, dict[str, dict[str, Any]]] = {
-    # The shared config solves in ~14k steps, where the Zoo's DQN first touches 475 at ~7k. Each candidate changes
-    # one thing: the discount (a shorter horizon propagates values in fewer fitted iterations), how much is refitted
-    # per env step (more fitted iterations per round, or shorter rounds), how long epsilon decays, or the network
-    # and learning rate (the Zoo DQN's: 256-256, 2.3e-3); the last two of the first round combine the first ones.
-    "CartPole-v1": {
-        "shared": {**_SHARED, **_CARTPOLE_BUDGET},
-        # A shorter horizon: values propagate in fewer fitted iterations.
-        "shared-gamma-0.98": {**_SHARED, "gamma": 0.98, **_CARTPOLE_BUDGET},
-        # Twice the fitted iterations per round (16 instead of 8).
-        "shared-k16": {**_SHARED, "gradient_steps": 16, **_CARTPOLE_BUDGET},
-        # Rounds of 128 steps: the memory is refitted twice as often.
-        "shared-rounds-128": {**_SHARED, "train_freq": 128, **_CARTPOLE_BUDGET},
-        # Epsilon reaches its floor after 4k steps instead of 8k.
-        "shared-eps-4k": {**_SHARED, "exploration_fraction": 0.08, **_CARTPOLE_BUDGET},
-        # The Zoo DQN's network and learning rate.
-        "shared-256x256-lr-2.3e-3": {**_SHARED, **_CARTPOLE_ZOO_NET, **_CARTPOLE_BUDGET},
-        "shared-gamma-0.98-k16": {**_SHARED, "gamma": 0.98, "gradient_steps": 16, **_CARTPOLE_BUDGET},
-        "shared-gamma-0.98-k16-rounds-128": {
-            **_SHARED,
-            "gamma": 0.98,
-            "gradient_steps": 16,
-            "train_freq": 128,
-            **_CARTPOLE_BUDGET,
-        },
-        # Second round: the Zoo DQN's network and learning rate gave the largest gain of the first round (median
-        # 7,168 steps against the shared config's 13,056); each of these adds one more lever of the first round.
-        "shared-256x256-lr-2.3e-3-k16": {**_SHARED, **_CARTPOLE_ZOO_NET, "gradient_steps": 16, **_CARTPOLE_BUDGET},
-        "shared-256x256-lr-2.3e-3-rounds-128": {**_SHARED, **_CARTPOLE_ZOO_NET, "train_freq": 128, **_CARTPOLE_BUDGET},
-        "shared-256x256-lr-2.3e-3-eps-4k": {
-            **_SHARED,
-            **_CARTPOLE_ZOO_NET,
-            "exploration_fraction": 0.08,
-            **_CARTPOLE_BUDGET,
-        },
-        "shared-256x256-lr-2.3e-3-gamma-0.98": {**_SHARED, **_CARTPOLE_ZOO_NET, "gamma": 0.98, **_CARTPOLE_BUDGET},
-    },
-    "Acrobot-v1": {
-        "book": {},
-        "book-gamma-0.99": {"gamma": 0.99},
-        "book-eps-1-to-0.05": {
-            "exploration_initial_eps": 1.0,
-            "exploration_final_eps": 0.05,
-            "exploration_fraction": 0.1,
-        },
-        "shared": {**_SHARED, "n_timesteps": configs.ZOO_DQN_BUDGETS["Acrobot-v1"]},
-    },
-    "MountainCar-v0": {
-        "shared": {**_SHARED, "n_timesteps": configs.ZOO_DQN_BUDGETS["MountainCar-v0"]},
-        # The Zoo DQN's MountainCar memory and discount (buffer_size 10000, gamma 0.98); the small memory also
-        # makes each round's fit cheaper.
-        "shared-memory-10k-gamma-0.98": {
-            **_SHARED,
-            "buffer_size": 10_000,
-            "gamma": 0.98,
-            "n_timesteps": configs.ZOO_DQN_BUDGETS["MountainCar-v0"],
-        },
-    },
-    "LunarLander-v3": {
-        "shared": {**_SHARED, "n_timesteps": configs.ZOO_DQN_BUDGETS["LunarLander-v3"]},
-        "shared-memory-50k-zoo-eps": {
-            **_SHARED,
-            **_ZOO_LUNAR_EXPLORATION,
-            "buffer_size": 50_000,
-            "n_timesteps": configs.ZOO_DQN_BUDGETS["LunarLander-v3"],
-        },
-        "shared-128x128-memory-50k-zoo-eps": {
-            **_SHARED,
-            **_ZOO_LUNAR_EXPLORATION,
-            "buffer_size": 50_000,
-            "policy_kwargs": "dict(net_arch=[128, 128], optimizer_class=th.optim.Adam)",
-            "n_timesteps": configs.ZOO_DQN_BUDGETS["LunarLander-v3"],
-        },
-        # Second round, after the three above solved no tuning seed and swung by hundreds between evaluations:
-        # the shared config refits the whole memory 8 times every 256 steps (at 50k transitions, ~12 mini-batch
-        # steps per env step, against the Zoo DQN's one). These refit it 4 times every 1024 steps (16x fewer).
-        "low-replay-memory-50k-zoo-eps": {
-            **_SHARED,
-            **_ZOO_LUNAR_EXPLORATION,
-            "train_freq": 1024,
-            "gradient_steps": 4,
-            "buffer_size": 50_000,
-            "n_timesteps": configs.ZOO_DQN_BUDGETS["LunarLander-v3"],
-        },
-        # ... with the Zoo DQN's network (256-256) and a smaller, Huber-loss step.
-        "low-replay-256x256-huber-lr-5e-4-memory-50k-zoo-eps": {
-            **_SHARED,
-            **_ZOO_LUNAR_EXPLORATION,
-            "train_freq": 1024,
-            "gradient_steps": 4,
-            "buffer_size": 50_000,
-            "loss": "huber",
-            "learning_rate": 5e-4,
-            "policy_kwargs": "dict(net_arch=[256, 256], optimizer_class=th.optim.Adam)",
-            "n_timesteps": configs.ZOO_DQN_BUDGETS["LunarLander-v3"],
-        },
-        # Third round: low-replay-memory-50k-zoo-eps was still climbing at 100k steps (greedy mean 152 and 106 at
-        # the end), and a run costs about a minute of training per 100k steps now: twice the Zoo DQN's budget.
-        "low-replay-memory-50k-zoo-eps-200k-steps": {
-            **_SHARED,
-            **_ZOO_LUNAR_EXPLORATION,
-            "train_freq": 1024,
-            "gradient_steps": 4,
-            "buffer_size": 50_000,
-            "n_timesteps": 2 * configs.ZOO_DQN_BUDGETS["LunarLander-v3"],
-        },
-    },
-}
+def read_candidates(path: Path = CANDIDATES_FILE) -> dict[str, dict[str, dict[str, Any]]]:
+    """
+    :param path: the candidates file
+    :return: env id -> candidate name -> its entry (``n_timesteps`` included): its ``base`` config's entry for that
+        env, updated with the keys the candidate sets
+    """
+    table = yaml.safe_load(path.read_text())
+    candidates: dict[str, dict[str, dict[str, Any]]] = {}
+    for env_id, named in table.items():
+        for name, written in named.items():
+            overrides = dict(written)
+            if "base" not in overrides:
+                raise ValueError(f"{path}: candidate {name!r} of {env_id} names no 'base' config")
+            candidates.setdefault(env_id, {})[name] = {**read_entry(overrides.pop("base"), env_id), **overrides}
+    return candidates
+
+
+CANDIDATES = read_candidates()
 
 
 def candidate_jobs(
@@ -178,6 +78,7 @@ def candidate_jobs(
     budget: int | None = None,
     n_eval_episodes: int = configs.N_EVAL_EPISODES,
     command: str = "",
+    stop_at_solve: bool = True,
 ) -> list[Job]:
     """
     :param env_id: one of :data:`CANDIDATES`' envs
@@ -186,7 +87,8 @@ def candidate_jobs(
     :param budget: env-step budget of every job (default: each candidate's; smaller only for smoke tests)
     :param n_eval_episodes: greedy episodes per evaluation (fewer only for smoke tests)
     :param command: the command line, recorded with each result
-    :return: one runner job per candidate and seed, stopped at solve
+    :param stop_at_solve: stop each job at the solve (otherwise it trains on to the budget)
+    :return: one runner job per candidate and seed
     """
     if env_id not in CANDIDATES:
         raise KeyError(f"no tuning candidates for {env_id!r}; envs with candidates: {sorted(CANDIDATES)}")
@@ -198,7 +100,7 @@ def candidate_jobs(
     jobs = []
     for name in names:
         kwargs = dict(CANDIDATES[env_id][name])
-        candidate_budget = int(kwargs.pop("n_timesteps", spec.budget))
+        candidate_budget = int(kwargs.pop("n_timesteps"))
         for seed in seeds:
             jobs.append(
                 Job(
@@ -211,8 +113,8 @@ def candidate_jobs(
                     threshold=spec.threshold,
                     eval_every=TUNING_EVAL_EVERY.get(env_id, spec.eval_every),
                     n_eval_episodes=n_eval_episodes,
-                    stop_at_solve=True,
-                    source="benchmarks/tune_nfq.py",
+                    stop_at_solve=stop_at_solve,
+                    source="benchmarks/tuning_candidates.yml",
                     command=command,
                     git=git,
                 )
@@ -228,6 +130,8 @@ class CandidateSummary:
     :param name: candidate name
     :param seeds: seeds run
     :param solved: seeds that reached the threshold
+    :param stayed: seeds whose final score (at the budget, or at the solve for a run stopped there) reaches the
+        threshold
     :param median_steps: median env steps to solve (an unsolved seed counts as the steps it trained)
     :param steps: per seed, steps to solve (``None``: not solved)
     :param median_train_seconds: median training seconds (evaluations excluded)
@@ -236,25 +140,27 @@ class CandidateSummary:
     name: str
     seeds: int
     solved: int
+    stayed: int
     median_steps: float
     steps: list[int | None]
     median_train_seconds: float
 
     @property
-    def rank_key(self) -> tuple[float, float, float]:
-        """:return: sort key of the ranking: most solved, fewest steps, fewest seconds"""
-        return (-self.solved / self.seeds, self.median_steps, self.median_train_seconds)
+    def rank_key(self) -> tuple[float, float, float, float]:
+        """:return: sort key of the ranking: most solved, most solved at the end, fewest steps, fewest seconds"""
+        return (-self.solved / self.seeds, -self.stayed / self.seeds, self.median_steps, self.median_train_seconds)
 
 
-def summarize(records: Sequence[dict[str, Any]], env_id: str) -> list[CandidateSummary]:
+def summarize(records: Sequence[dict[str, Any]], env_id: str, to_budget: bool = False) -> list[CandidateSummary]:
     """
     :param records: result lines of the tuning file
     :param env_id: env to summarize
+    :param to_budget: summarize the runs trained to the budget (otherwise those stopped at the solve)
     :return: the env's candidates that have results, best first (see the module's ranking)
     """
     by_name: dict[str, list[dict[str, Any]]] = {}
     for record in records:
-        if record["env"] == env_id and record["algo"].startswith(ALGO_PREFIX):
+        if record["env"] == env_id and record["algo"].startswith(ALGO_PREFIX) and record["stop_at_solve"] != to_budget:
             by_name.setdefault(record["algo"].removeprefix(ALGO_PREFIX), []).append(record)
     summaries = []
     for name, runs in by_name.items():
@@ -264,6 +170,7 @@ def summarize(records: Sequence[dict[str, Any]], env_id: str) -> list[CandidateS
                 name=name,
                 seeds=len(runs),
                 solved=sum(bool(run["solved"]) for run in runs),
+                stayed=sum(run["final_score"] >= run["threshold"] for run in runs),
                 median_steps=statistics.median(
                     run["steps_to_solve"] if run["solved"] else run["steps_trained"] for run in runs
                 ),
@@ -274,22 +181,25 @@ def summarize(records: Sequence[dict[str, Any]], env_id: str) -> list[CandidateS
     return sorted(summaries, key=lambda summary: summary.rank_key)
 
 
-def summary_table(summaries: Sequence[CandidateSummary], env_id: str) -> str:
+def summary_table(summaries: Sequence[CandidateSummary], env_id: str, to_budget: bool = False) -> str:
     """
     :param summaries: ranked candidates of one env
     :param env_id: the env
+    :param to_budget: whether the runs trained to the budget (otherwise they stopped at the solve)
     :return: a markdown table, best candidate first
     """
     lines = [
-        f"{env_id} (threshold {configs.ENVS[env_id].threshold:g})",
+        f"{env_id} (threshold {configs.ENVS[env_id].threshold:g}; "
+        + ("trained to the budget)" if to_budget else "stopped at the solve)"),
         "",
-        "| rank | candidate | solved | median steps to solve | steps per seed | median train s |",
-        "|---|---|---|---|---|---|",
+        "| rank | candidate | solved | final ≥ threshold | median steps to solve | steps per seed | median train s |",
+        "|---|---|---|---|---|---|---|",
     ]
     for rank, summary in enumerate(summaries, start=1):
         steps = ", ".join("-" if value is None else f"{value:,}" for value in summary.steps)
         lines.append(
-            f"| {rank} | {summary.name} | {summary.solved}/{summary.seeds} | {summary.median_steps:,.0f} | {steps} "
+            f"| {rank} | {summary.name} | {summary.solved}/{summary.seeds} | {summary.stayed}/{summary.seeds} "
+            f"| {summary.median_steps:,.0f} | {steps} "
             f"| {summary.median_train_seconds:.1f} |"
         )
     return "\n".join(lines)
@@ -306,21 +216,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", required=True, choices=sorted(CANDIDATES))
     parser.add_argument("--candidates", nargs="+", help="candidate names (default: all of each env's)")
-    parser.add_argument("--seeds", nargs="+", default=[DEFAULT_TUNING_SEEDS], help="tuning seeds (default 100-101)")
-    parser.add_argument("--budget", type=int, help="env-step budget of every job (default: each candidate's)")
+    add_job_arguments(parser, default_seeds=DEFAULT_TUNING_SEEDS)
     parser.add_argument(
-        "--eval-episodes",
-        type=int,
-        default=configs.N_EVAL_EPISODES,
-        help="greedy episodes per evaluation (default 100, the criterion; fewer only for smoke tests)",
+        "--to-budget", action="store_true", help="train every job to its budget (default: to the solve)"
     )
-    parser.add_argument("--workers", type=int, default=2, help="local worker processes (0: in this process)")
     parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="JSON-lines results file")
     parser.add_argument("--list", action="store_true", help="list the candidates and exit")
     parser.add_argument("--summary-only", action="store_true", help="rank what the results file holds; run nothing")
     args = parser.parse_args(argv)
-    if args.workers < 0:
-        parser.error("--workers must be >= 0")
 
     if args.list:
         for env_id in args.envs:
@@ -335,15 +238,45 @@ def main(argv: Sequence[str] | None = None) -> int:
             job
             for env_id in args.envs
             for job in candidate_jobs(
-                env_id, args.candidates or list(CANDIDATES[env_id]), seeds, args.budget, args.eval_episodes, command
+                env_id,
+                args.candidates or list(CANDIDATES[env_id]),
+                seeds,
+                args.budget,
+                args.eval_episodes,
+                command,
+                stop_at_solve=not args.to_budget,
             )
         ]
         _, _, failures = run_jobs(jobs, args.results, args.workers)
     records = read_results(args.results)
     for env_id in args.envs:
         print()
-        print(summary_table(summarize(records, env_id), env_id))
+        print(summary_table(summarize(records, env_id, args.to_budget), env_id, args.to_budget))
+    summary = args.results.with_suffix(".md")
+    summary.write_text(summary_file_text(records, args.results.name))
+    print(f"\nwrote {summary}")
     return 1 if failures else 0
+
+
+def summary_file_text(records: Sequence[dict[str, Any]], results_name: str) -> str:
+    """
+    :param records: result lines of the tuning file
+    :param results_name: the tuning file's name
+    :return: the ranking of every env and protocol the file holds (written next to it, linked from the README)
+    """
+    lines = [
+        "# Tuning rankings",
+        "",
+        f"Generated by `python -m benchmarks.tune_nfq --envs ... --summary-only` from `{results_name}` (see "
+        "benchmarks/README.md, Per-env tuning, for the ranking and the candidates). Steps per seed in seed order; "
+        "training seconds, 1 torch thread per job, are only the last tie-break.",
+    ]
+    for env_id in CANDIDATES:
+        for to_budget in (False, True):
+            summaries = summarize(records, env_id, to_budget)
+            if summaries:
+                lines += ["", "## " + summary_table(summaries, env_id, to_budget)]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

@@ -28,11 +28,11 @@ import os
 import socket
 import sys
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch as th
 
+from sb3_nfq.configs import ZOO_FILE
 from sb3_nfq.nfq import NFQ
 
 if TYPE_CHECKING:
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 #: The algorithm's name in the zoo (``--algo nfq``, ``logs/nfq/...``, ``hyperparams/nfq.yml``).
 ALGO_NAME = "nfq"
 #: The zoo hyperparameter file shipped with the package, used when ``train`` gets no ``--conf-file``.
-DEFAULT_CONF_FILE = Path(__file__).resolve().parent / "hyperparams" / "nfq.yml"
+DEFAULT_CONF_FILE = ZOO_FILE
 #: Where ``enjoy`` looks for agents when it gets no ``--folder`` (the zoo's ``train`` default, ``-f logs``).
 DEFAULT_ENJOY_FOLDER = "logs"
 #: The zoo commands this launcher runs.

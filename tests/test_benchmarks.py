@@ -17,7 +17,7 @@ from torch.nn import functional as F
 
 from benchmarks import configs, main_job, memory_images, overhead, readme_blocks, report, run, scaling, tune_nfq
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
-from sb3_nfq.configs import zoo_to_kwargs
+from sb3_nfq.configs import read_entry, zoo_to_kwargs
 
 RESULT_FIELDS = {
     "algo": str,
@@ -182,13 +182,18 @@ def test_nfq_configs_build_nfq_models() -> None:
     assert isinstance(model.policy.optimizer, th.optim.Adam)
     assert model.memory == "growing" and model.gradient_steps == 8
     for env_id in configs.ENVS:  # a tuned entry differs from the book's settings everywhere
-        assert configs.NFQ_CONFIGS["nfq-tuned"][env_id] != {}, env_id
+        assert configs.resolve("nfq-tuned", env_id).kwargs != {}, env_id
     shared = [configs.resolve("nfq-shared", env_id) for env_id in configs.ENVS]
     assert all(config.kwargs == shared[0].kwargs for config in shared), "one config for every env"
     assert [config.budget for config in shared] == [
         configs.resolve("dqn-zoo", env_id).budget for env_id in configs.ENVS
     ]
-    assert configs.resolve("nfq-book", "LunarLander-v3").kwargs == {}
+    book = [configs.resolve("nfq-book", env_id) for env_id in configs.ENVS]
+    assert all(config.kwargs == {} for config in book), "the textbook settings: NFQ's defaults"
+    assert [config.budget for config in book] == [300_000, 300_000, 300_000, 500_000]
+    reference = [configs.resolve("reference-nfq", env_id) for env_id in configs.ENVS]
+    assert [config.budget for config in reference] == [config.budget for config in book]
+    assert configs.resolve("nfq-shared", "Acrobot-v1").source == "sb3_nfq/hyperparams/nfq-shared.yml"
 
 
 # --- runner -----------------------------------------------------------------------------------------------------
@@ -508,15 +513,20 @@ def test_every_tuning_candidate_builds_an_nfq_model() -> None:
         for name, candidate in candidates.items():
             job = tune_nfq.candidate_jobs(env_id, [name], [0])[0]
             assert job.stop_at_solve and job.algo == f"tune:{name}"
-            assert job.budget == int(candidate.get("n_timesteps", configs.ENVS[env_id].budget))
+            assert job.budget == candidate["n_timesteps"]
             model = NFQ("MlpPolicy", env_id, **zoo_to_kwargs(job.kwargs))
             assert model.gamma == candidate.get("gamma", 1.0)
 
 
-def test_tuned_configs_are_tuning_candidates() -> None:
-    """Every nfq-tuned entry is one of the tuning sweep's candidates, unchanged."""
-    for env_id, candidates in tune_nfq.CANDIDATES.items():
-        assert configs.NFQ_CONFIGS["nfq-tuned"][env_id] in candidates.values(), env_id
+def test_a_candidate_is_its_base_config_with_the_keys_it_sets(tmp_path: Path) -> None:
+    path = tmp_path / "candidates.yml"
+    path.write_text("Acrobot-v1:\n  lower-gamma: {base: nfq-shared, gamma: 0.9}\n  book: {base: nfq-book}\n")
+    candidates = tune_nfq.read_candidates(path)["Acrobot-v1"]
+    assert candidates["lower-gamma"] == {**read_entry("nfq-shared", "Acrobot-v1"), "gamma": 0.9}
+    assert candidates["book"] == {"n_timesteps": 300_000}
+    path.write_text("Acrobot-v1:\n  orphan: {gamma: 0.9}\n")
+    with pytest.raises(ValueError, match="candidate 'orphan' of Acrobot-v1 names no 'base' config"):
+        tune_nfq.read_candidates(path)
 
 
 def test_tuning_sweep_runs_ranks_and_resumes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -537,8 +547,8 @@ def test_tuning_sweep_runs_ranks_and_resumes(tmp_path: Path, capsys: pytest.Capt
         tune_nfq.candidate_jobs("Acrobot-v1", ["no-such-candidate"], [0])
 
 
-def test_tuning_ranking_prefers_solved_then_fewer_steps_then_fewer_seconds() -> None:
-    def record(name: str, seed: int, steps: int | None, seconds: float) -> dict[str, Any]:
+def test_tuning_ranking_prefers_solved_then_solved_at_the_end_then_fewer_steps_then_fewer_seconds() -> None:
+    def record(name: str, seed: int, steps: int | None, seconds: float, final: float = -90.0) -> dict[str, Any]:
         return {
             "algo": f"tune:{name}",
             "env": "Acrobot-v1",
@@ -547,6 +557,9 @@ def test_tuning_ranking_prefers_solved_then_fewer_steps_then_fewer_seconds() -> 
             "steps_to_solve": steps,
             "steps_trained": 300_000 if steps is None else steps,
             "train_seconds": seconds,
+            "final_score": final,
+            "threshold": -100.0,
+            "stop_at_solve": True,
         }
 
     records = [
@@ -558,10 +571,16 @@ def test_tuning_ranking_prefers_solved_then_fewer_steps_then_fewer_seconds() -> 
         record("quick", 1, 8_192, 5.0),
         record("quick-and-cheap", 0, 8_192, 2.0),
         record("quick-and-cheap", 1, 8_192, 2.0),
+        record("quickest-but-falls-off", 0, 4_096, 1.0, final=-150.0),
+        record("quickest-but-falls-off", 1, 4_096, 1.0),
         {**record("other-env", 0, 1, 0.1), "env": "CartPole-v1"},
+        {**record("trained-to-the-budget", 0, 1, 0.1), "stop_at_solve": False},
     ]
     ranked = [summary.name for summary in tune_nfq.summarize(records, "Acrobot-v1")]
-    assert ranked == ["quick-and-cheap", "quick", "slow", "fast-but-fails-once"]
+    assert ranked == ["quick-and-cheap", "quick", "slow", "quickest-but-falls-off", "fast-but-fails-once"]
+    assert [summary.name for summary in tune_nfq.summarize(records, "Acrobot-v1", to_budget=True)] == [
+        "trained-to-the-budget"
+    ]
 
 
 # --- overhead ---------------------------------------------------------------------------------------------------

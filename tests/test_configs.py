@@ -2,13 +2,38 @@
 
 import pytest
 import torch as th
+import yaml
 
 from sb3_nfq import NFQ
-from sb3_nfq.configs import config_names, nfq_kwargs, read_entry, zoo_to_kwargs
+from sb3_nfq.configs import (
+    RECOMMENDED,
+    ZOO_FILE,
+    config_names,
+    nfq_kwargs,
+    read_entry,
+    zoo_file_text,
+    zoo_to_kwargs,
+)
 
 
-def test_shipped_configs_include_the_zoo_file_and_nfq_shared() -> None:
-    assert {"nfq", "nfq-shared"} <= set(config_names())
+def test_shipped_configs_are_the_named_files_without_the_zoo_file() -> None:
+    assert config_names() == ["nfq-atari", "nfq-book", "nfq-shared", "nfq-tuned"]
+
+
+def test_an_env_without_an_entry_gets_the_default_entry() -> None:
+    assert read_entry("nfq-book", "Pendulum-v1") == read_entry("nfq-book", "CartPole-v1") == {"n_timesteps": 300_000}
+    assert read_entry("nfq-book", "LunarLander-v3") == {"n_timesteps": 500_000}
+
+
+def test_the_zoo_file_is_generated_from_the_recommended_configs() -> None:
+    assert ZOO_FILE.read_text() == zoo_file_text(), "regenerate it: python -m sb3_nfq.configs"
+    table = yaml.safe_load(ZOO_FILE.read_text())
+    assert list(table) == list(RECOMMENDED)
+    for env_id, name in RECOMMENDED.items():
+        entry = dict(table[env_id])
+        assert entry.pop("policy") == read_entry(name, env_id).get("policy", "MlpPolicy")
+        assert entry == {key: value for key, value in read_entry(name, env_id).items() if key != "policy"}
+    assert table["LunarLander-v3"]["buffer_size"] == 50_000  # nfq-tuned's, the config that solved it 5/5
 
 
 def test_an_entry_becomes_nfq_keyword_arguments() -> None:

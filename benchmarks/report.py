@@ -8,9 +8,10 @@ CI from ``rliable``), final greedy score at the budget, training seconds. Runs t
 number of trained steps (censored): a statistic that reaches a censored value is a lower bound, shown as ``≥``.
 Then the project's targets, each "met", "not met" or "not enough data" (staying solved is judged only on runs trained
 on to the budget), and one PNG of learning curves per env (mean greedy return over seeds with a 95% bootstrap band).
-Runs of a config that ``benchmarks/configs.py`` has since replaced get a table of their own under their env, and are
-left out of the targets and the plots. Runs of the runner's ``--protocol book`` (``--book-results``) get a table of
-their own beside the book's printed numbers, with the ratio of medians and a Mann-Whitney test between
+The targets are data (``benchmarks/targets.yml``). Runs whose recorded settings are no longer what their config
+name holds (recorded before configs became files that are never edited) get a table of their own under their env,
+and are left out of the targets and the plots. Runs of the runner's ``--protocol book`` (``--book-results``) get a
+table of their own beside the book's printed numbers, with the ratio of medians and a Mann-Whitney test between
 implementations.
 """
 
@@ -29,6 +30,7 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
+import yaml
 
 from benchmarks import configs
 from benchmarks.run import DEFAULT_BOOK_RESULTS, DEFAULT_RESULTS, REPO_ROOT, read_results
@@ -38,8 +40,8 @@ BOOTSTRAP_REPS = 2000
 SOLVE_FRACTION = 0.8
 #: Seeds needed before a target is judged.
 MIN_SEEDS = 5
-#: The nfq-shared target (issue 3): this many of the four envs solved in >= 4/5 seeds.
-SHARED_ENVS_TARGET = 3
+#: The targets, as data.
+TARGETS_FILE = REPO_ROOT / "benchmarks" / "targets.yml"
 #: The book's own NFQ table on CartPole-v1 ("Grokking Deep Reinforcement Learning", chapter 8): its seeds and the
 #: means it prints over them, under its own criterion (the runner's ``--protocol book``).
 BOOK_SEEDS = (12, 34, 56, 78, 90)
@@ -129,10 +131,8 @@ class Cell:
     config_hash: str
     runs: list[dict[str, Any]]
     label: str = ""
-    #: The runs used a config that ``benchmarks/configs.py`` no longer gives this algorithm on this env.
-    earlier_config: bool = False
-    #: For an earlier config: the algorithm whose config on this env it is now, if any.
-    now_config_of: str | None = None
+    #: The runs' recorded settings are not what the config name holds today.
+    superseded: bool = False
 
     @property
     def n(self) -> int:
@@ -204,8 +204,8 @@ def current_config(algo: str, env: str) -> dict[str, Any] | None:
 def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     """
     :param records: result lines
-    :return: env -> cells, in :data:`configs.ENVS` then algorithm order, cells of an earlier config (one that
-        ``benchmarks/configs.py`` has since replaced) last; within a (env, algo), the cell with the most seeds first
+    :return: env -> cells, in :data:`configs.ENVS` then algorithm order, superseded cells (whose recorded settings
+        are not what their config name holds today) last; within a (env, algo), the cell with the most seeds first
         (the one targets use). A seed that appears twice in a cell keeps its last line.
     """
     grouped: dict[tuple[str, str, int, str], dict[int, dict[str, Any]]] = defaultdict(dict)
@@ -219,9 +219,7 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
             current_by_env[env] = {name: current_config(name, env) for name in configs.algorithm_names()}
         current = current_by_env[env].get(algo)
         recorded = cell.runs[0].get("config")
-        if current is not None and recorded != current:
-            cell.earlier_config = True
-            cell.now_config_of = next((name for name, now in current_by_env[env].items() if now == recorded), None)
+        cell.superseded = current is not None and recorded != current
         by_env[env].append(cell)
     env_order: dict[str, int] = {}
     for env in [*configs.ENVS, *sorted(by_env)]:
@@ -231,12 +229,10 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     for env in sorted(by_env, key=lambda name: env_order[name]):
         cells = sorted(
             by_env[env],
-            key=lambda cell: (cell.earlier_config, algo_order.get(cell.algo, len(algo_order)), cell.algo, -cell.n),
+            key=lambda cell: (cell.superseded, algo_order.get(cell.algo, len(algo_order)), cell.algo, -cell.n),
         )
         for cell in cells:
-            same_algo = [
-                other for other in cells if other.algo == cell.algo and other.earlier_config == cell.earlier_config
-            ]
+            same_algo = [other for other in cells if other.algo == cell.algo and other.superseded == cell.superseded]
             cell.label = _distinct_label(cell, same_algo)
         result[env] = cells
     return result
@@ -244,12 +240,12 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
 
 def _distinct_label(cell: Cell, same_algo: Sequence[Cell]) -> str:
     """
-    :param same_algo: the cells of the same algorithm on the env, current or earlier config like ``cell``
+    :param same_algo: the cells of the same algorithm on the env, superseded or not like ``cell``
     :return: the algorithm name, plus what tells this cell apart from the algorithm's other cells on the env
     """
     details = []
-    if cell.earlier_config:
-        details.append(f"earlier config, now {cell.now_config_of}'s" if cell.now_config_of else "earlier config")
+    if cell.superseded:
+        details.append(f"config {cell.config_hash}, since changed")
     if len(same_algo) == 1:
         return f"{cell.algo} ({details[0]})" if details else cell.algo
     if len({other.budget for other in same_algo}) > 1:
@@ -287,7 +283,7 @@ def primary_cell(
 
 def current_cells(cells_by_env: dict[str, list[Cell]], env: str) -> list[Cell]:
     """:return: the env's cells that ran the algorithms' current configs (the ones targets and plots use)"""
-    return [cell for cell in cells_by_env.get(env, []) if not cell.earlier_config]
+    return [cell for cell in cells_by_env.get(env, []) if not cell.superseded]
 
 
 # --- formatting -------------------------------------------------------------------------------------------------
@@ -404,11 +400,11 @@ def ratio_target(
     return "not enough data", text
 
 
-def shared_target(cells_by_env: dict[str, list[Cell]]) -> tuple[str, str]:
-    """:return: (verdict, text) for "nfq-shared solves the envs in >= 4/5 seeds" """
+def solved_envs_target(cells_by_env: dict[str, list[Cell]], algo: str, at_least: int) -> tuple[str, str]:
+    """:return: (verdict, text) for "``algo`` solves at least ``at_least`` envs, each in >= 4/5 seeds" """
     solved, unknown, parts = 0, 0, []
     for env in configs.ENVS:
-        cell = primary_cell(cells_by_env, env, "nfq-shared")
+        cell = primary_cell(cells_by_env, env, algo)
         if cell is None or cell.n < MIN_SEEDS:
             unknown += 1
             parts.append(f"{env}: {cell.n if cell else 0} seeds")
@@ -417,9 +413,9 @@ def shared_target(cells_by_env: dict[str, list[Cell]]) -> tuple[str, str]:
             solved += ok
             parts.append(f"{env}: {sum(run['solved'] for run in cell.runs)}/{cell.n}")
     text = f"{solved} of {len(configs.ENVS)} envs solved in ≥ 4/5 seeds ({'; '.join(parts)})"
-    if solved >= SHARED_ENVS_TARGET:
+    if solved >= at_least:
         return "met", text
-    if solved + unknown < SHARED_ENVS_TARGET:
+    if solved + unknown < at_least:
         return "not met", text
     return "not enough data", text
 
@@ -445,51 +441,67 @@ def _period_note(eval_every: int | None) -> str:
     return "" if eval_every is None else f" (runs evaluated every {eval_every:,} steps)"
 
 
-def target_lines(cells_by_env: dict[str, list[Cell]]) -> list[str]:
-    """:return: the markdown lines of the targets section"""
-    cartpole = "CartPole-v1"
-    targets: list[tuple[str, tuple[str, str], list[str], list[str]]] = []
-    pair = ["nfq-book", "reference-nfq"]
-    for period in common_eval_periods(cells_by_env, cartpole, pair):
-        targets.append(
-            (
-                "nfq-book / reference-nfq median steps to solve on CartPole-v1 within ±25% (0.75 to 1.25)"
-                + _period_note(period),
-                ratio_target(cells_by_env, cartpole, "nfq-book", "reference-nfq", 0.75, 1.25, period),
-                pair,
-                [cartpole],
+def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
+    """
+    :param path: the targets file
+    :return: its targets, each checked to be of a known kind with the keys that kind needs
+    """
+    needs = {
+        "steps_ratio": {"algo", "baseline", "env", "high"},
+        "final_score": {"algo", "env"},
+        "solved_envs": {"algo", "at_least"},
+    }
+    optional = {"steps_ratio": {"low"}}
+    targets = yaml.safe_load(path.read_text())
+    for target in targets:
+        kind = target.get("kind")
+        if kind not in needs:
+            raise ValueError(f"{path}: unknown target kind {kind!r}; known: {sorted(needs)}")
+        keys = set(target) - {"kind"}
+        if not needs[kind] <= keys <= needs[kind] | optional.get(kind, set()):
+            raise ValueError(
+                f"{path}: a {kind} target takes {sorted(needs[kind])} (optional: {sorted(optional.get(kind, []))}), "
+                f"got {sorted(keys)}"
             )
-        )
-    pair = ["nfq-tuned", "dqn-zoo"]
-    for period in common_eval_periods(cells_by_env, cartpole, pair):
-        targets.append(
+    return list(targets)
+
+
+def judge(cells_by_env: dict[str, list[Cell]], target: dict[str, Any]) -> list[tuple[str, tuple[str, str]]]:
+    """
+    :param target: one target of the targets file
+    :return: (what the target says, (verdict, measured)) for each reading of it (one per evaluation period)
+    """
+    algo = target["algo"]
+    if target["kind"] == "solved_envs":
+        name = f"{algo} (one config) solves ≥ {target['at_least']} of the {len(configs.ENVS)} envs in ≥ 4/5 seeds"
+        return [(name, solved_envs_target(cells_by_env, algo, target["at_least"]))]
+    env = target["env"]
+    if target["kind"] == "final_score":
+        threshold = configs.ENVS[env].threshold
+        return [
             (
-                "nfq-tuned / dqn-zoo median steps to solve on CartPole-v1 ≤ 0.75" + _period_note(period),
-                ratio_target(cells_by_env, cartpole, "nfq-tuned", "dqn-zoo", 0.0, 0.75, period),
-                ["nfq-tuned"],
-                [cartpole],
+                f"{algo} final score at budget ≥ {threshold:g} on {env} in ≥ 4/5 seeds" + _period_note(period),
+                final_score_target(cells_by_env, env, algo, period),
             )
-        )
-    targets.append(
+            for period in common_eval_periods(cells_by_env, env, [algo])
+        ]
+    baseline, low, high = target["baseline"], float(target.get("low", 0.0)), float(target["high"])
+    bound = f"within {low:g} to {high:g}" if low > 0 else f"≤ {high:g}"
+    return [
         (
-            f"nfq-shared (one config) solves ≥ {SHARED_ENVS_TARGET} of the 4 envs in ≥ 4/5 seeds",
-            shared_target(cells_by_env),
-            ["nfq-shared"],
-            list(configs.ENVS),
+            f"{algo} / {baseline} median steps to solve on {env} {bound}" + _period_note(period),
+            ratio_target(cells_by_env, env, algo, baseline, low, high, period),
         )
-    )
-    for period in common_eval_periods(cells_by_env, cartpole, ["nfq-tuned"]):
-        targets.append(
-            (
-                "nfq-tuned final score at budget ≥ 475 on CartPole-v1 in ≥ 4/5 seeds" + _period_note(period),
-                final_score_target(cells_by_env, cartpole, "nfq-tuned", period),
-                ["nfq-tuned"],
-                [cartpole],
-            )
-        )
+        for period in common_eval_periods(cells_by_env, env, [algo, baseline])
+    ]
+
+
+def target_lines(cells_by_env: dict[str, list[Cell]], targets: Sequence[dict[str, Any]]) -> list[str]:
+    """:return: the markdown lines of the targets section"""
     lines = ["| target | verdict | measured |", "|---|---|---|"]
-    for name, (verdict, text), _, _ in targets:
-        lines.append(f"| {name} | **{verdict}** | {text} |")
+    for target in targets:
+        for name, (verdict, text) in judge(cells_by_env, target):
+            lines.append(f"| {name} | **{verdict}** | {text} |")
     return lines
 
 
@@ -738,24 +750,26 @@ def build_report(
         "",
         "## Targets",
         "",
-        *target_lines(cells_by_env),
+        f"From `{TARGETS_FILE.relative_to(REPO_ROOT)}`.",
+        "",
+        *target_lines(cells_by_env, read_targets()),
         "",
     ]
     for env, cells in cells_by_env.items():
         eval_every = ", ".join(str(e) for e in _unique([run for cell in cells for run in cell.runs], "eval_every"))
         threshold = cells[0].runs[0]["threshold"]
         current = current_cells(cells_by_env, env)
-        earlier = [cell for cell in cells if cell.earlier_config]
+        superseded = [cell for cell in cells if cell.superseded]
         lines += [f"## {env} (threshold {threshold:g}, evaluation every {eval_every} steps)", ""]
         if current:
             lines += [*table_rows(current), "", f"![{env} learning curves]({curve_filename(env)})", ""]
             plot_curves(env, current, out_dir / curve_filename(env))
-        if earlier:
+        if superseded:
             lines += [
-                "Runs of an earlier config of an algorithm, one that `benchmarks/configs.py` has since replaced (kept "
-                "in the results file; not used for the targets or the plot):",
+                "Runs whose recorded settings are not what their config name holds today (recorded before configs "
+                "became files that are never edited; kept in the results file, not used for the targets or the plot):",
                 "",
-                *table_rows(earlier),
+                *table_rows(superseded),
                 "",
             ]
     lines += book_protocol_lines(book_records)

@@ -422,20 +422,20 @@ def test_report_labels_tell_apart_cells_of_one_algorithm(results_file: Path) -> 
     assert labels == ["nfq-book (stopped at solve)", "nfq-book (to the budget)"]
 
 
-def test_report_keeps_runs_of_an_earlier_config_out_of_the_targets(results_file: Path, tmp_path: Path) -> None:
+def test_report_keeps_runs_of_superseded_settings_out_of_the_targets(results_file: Path, tmp_path: Path) -> None:
     records = _lines(results_file)
 
     def five_solved(algo: str, like: str) -> list[dict[str, Any]]:
         first = next(record for record in records if record["algo"] == like)
         return [dict(first, algo=algo, seed=seed, solved=True, steps_to_solve=1024) for seed in range(5)]
 
-    # nfq-book's runs recorded as nfq-tuned: as if nfq-tuned had once been the book's settings, since replaced
+    # nfq-book's runs recorded as nfq-tuned: settings that nfq-tuned does not hold today
     earlier = five_solved("nfq-tuned", like="nfq-book")
     dqn = five_solved("dqn-zoo", like="dqn-zoo")
     cells = report.build_cells([*earlier, *dqn])
     tuned = next(cell for cell in cells["CartPole-v1"] if cell.algo == "nfq-tuned")
-    assert tuned.earlier_config and tuned.now_config_of == "nfq-book"
-    assert tuned.label == "nfq-tuned (earlier config, now nfq-book's)"
+    assert tuned.superseded
+    assert tuned.label == f"nfq-tuned (config {tuned.config_hash}, since changed)"
     assert report.ratio_target(cells, "CartPole-v1", "nfq-tuned", "dqn-zoo", 0.0, 0.75)[0] == "not enough data"
     # the same runs recorded with nfq-tuned's current config are judged (ratio 1: not met)
     current = report.current_config("nfq-tuned", "CartPole-v1")
@@ -450,9 +450,31 @@ def test_report_keeps_runs_of_an_earlier_config_out_of_the_targets(results_file:
     path.write_text("".join(json.dumps(record) + "\n" for record in [*earlier, *dqn]))
     assert report.main(["--results", str(path), "--out-dir", str(tmp_path / "report")]) == 0
     text = (tmp_path / "report" / "README.md").read_text()
-    table_of_earlier = text.split("Runs of an earlier config")[1]
-    assert "| nfq-tuned (earlier config, now nfq-book's) | 5 |" in table_of_earlier
+    table_of_earlier = text.split("Runs whose recorded settings are not what their config name holds today")[1]
+    assert f"| nfq-tuned (config {tuned.config_hash}, since changed) | 5 |" in table_of_earlier
     assert "| dqn-zoo | 5 |" in text and "| dqn-zoo | 5 |" not in table_of_earlier
+
+
+def test_targets_are_read_from_data_and_bad_ones_are_refused(results_file: Path, tmp_path: Path) -> None:
+    assert [target["kind"] for target in report.read_targets()] == [
+        "steps_ratio",
+        "steps_ratio",
+        "solved_envs",
+        "final_score",
+    ]
+    path = tmp_path / "targets.yml"
+    path.write_text("- {kind: steps_ratio, algo: nfq-book, baseline: dqn-zoo, env: CartPole-v1, high: 2.5}\n")
+    (target,) = report.read_targets(path)
+    cells = report.build_cells(_lines(results_file))
+    (reading,) = report.judge(cells, target)  # the fixture's runs share one evaluation period
+    assert reading[0].startswith("nfq-book / dqn-zoo median steps to solve on CartPole-v1 ≤ 2.5")
+    assert reading[1][0] == "not enough data"  # two seeds each
+    path.write_text("- {kind: steps_ratio, algo: nfq-book, env: CartPole-v1, high: 2.5}\n")
+    with pytest.raises(ValueError, match=r"a steps_ratio target takes \['algo', 'baseline', 'env', 'high'\]"):
+        report.read_targets(path)
+    path.write_text("- {kind: fastest, algo: nfq-book}\n")
+    with pytest.raises(ValueError, match="unknown target kind 'fastest'"):
+        report.read_targets(path)
 
 
 def test_report_judges_staying_solved_only_on_runs_trained_to_the_budget(results_file: Path) -> None:

@@ -434,9 +434,8 @@ def make_training_env(env_id: str, n_envs: int, seed: int) -> "VecEnv":
     The training envs of NFQ and DQN: SB3's ``make_vec_env``, but with no render mode, like the reference's
     ``gym.make(env_id)`` and the evaluation envs. Given an env id, SB3 asks for ``render_mode="rgb_array"``;
     LunarLander then simulates exhaust particles as Box2D bodies at every engine firing (for drawing only: they
-    collide with the ground, never the lander). That slowed SB3 algorithms' LunarLander steps against the
-    reference's without changing a single observation (the textbook NFQ's 500k-step runs: 284-301 s of training
-    with particles, 210-222 s without, identical learning curves).
+    collide with the ground, never the lander). That slows SB3 algorithms' LunarLander steps against the
+    reference's without changing a single observation.
 
     :param env_id: gymnasium env id
     :param n_envs: number of envs

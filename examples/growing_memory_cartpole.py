@@ -1,10 +1,10 @@
 """
 The 2005 paper's data-efficient NFQ on CartPole-v1: a growing memory that keeps every transition, refitted
 every round, with short rounds and decaying exploration. Compare with the textbook's fresh batches
-(examples/solve_cartpole.py), which need well over 100k steps.
+(examples/solve_cartpole.py), which need many times more steps.
 
 Every 1024 steps (every 4th round) the greedy policy plays 100 episodes; the run reports the first evaluation whose
-mean reaches 475 (the book's "solved") and a final score on 100 new episodes. About 2.5 minutes on 2 cores.
+mean reaches 475 (the book's "solved") and a final score on 100 new episodes. A few minutes on one core.
 
     python examples/growing_memory_cartpole.py [--total-timesteps 50000] [--seed 0]
 """
@@ -21,9 +21,7 @@ from sb3_nfq import NFQ
 from sb3_nfq.configs import nfq_kwargs
 
 #: The growing-memory settings measured in benchmarks/ as "nfq-shared", the one config run unchanged on all four envs
-#: (sb3_nfq/hyperparams/nfq-shared.yml says what they are): every transition kept, a round every 256 steps, 8
-#: mini-batch iterations per round against targets fixed for the iteration, Adam, a 64-64 network, exploration
-#: decaying from 1 to 0.04 over the first 16% of the budget.
+#: (sb3_nfq/hyperparams/nfq-shared.yml says what they are).
 GROWING_MEMORY_NFQ: dict[str, Any] = nfq_kwargs("nfq-shared", "CartPole-v1")
 
 

@@ -672,6 +672,24 @@ def test_scaling_bins_divide_fit_seconds_by_the_steps_collected_in_each_bin() ->
     assert [row["per_1000_steps"] for row in rows] == [0.3, 0.6]
 
 
+def test_benchmarks_readme_env_table_is_the_generated_one() -> None:
+    table = configs.env_table()
+    assert "| LunarLander-v3 | 200 | 5,120 | 500,000 |" in table
+    readme = Path(configs.__file__).parent / "README.md"
+    text = readme.read_text()
+    assert readme_blocks.replace_block(text, configs.ENV_TABLE_MARKERS, table) == text, (
+        "run python -m benchmarks.configs"
+    )
+
+
+def test_readme_results_table_is_the_generated_one() -> None:
+    cells = report.build_cells(run.read_results(run.DEFAULT_RESULTS))
+    table = report.summary_table(cells)
+    assert "| LunarLander-v3 | nfq-tuned | 5 |" in table
+    text = readme_blocks.README.read_text()
+    assert readme_blocks.replace_block(text, report.SUMMARY_MARKERS, table) == text, "run python -m benchmarks.report"
+
+
 def test_readme_main_job_table_is_the_generated_one() -> None:
     payload = json.loads(main_job.DEFAULT_OUT.read_text())
     assert [result["busy_process_beside"] for result in payload["results"]] == [False, True]

@@ -8,7 +8,6 @@ Each run is a fresh process; "busy" starts a process that spins on one core for 
 results and the markdown table, and puts the table in README.md between its ``main-job`` markers.
 """
 
-import argparse
 import json
 import multiprocessing
 import subprocess
@@ -18,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks.readme_blocks import publish, replace_block
+from benchmarks.readme_blocks import publish, script_parser
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO_ROOT / "benchmarks" / "results" / "main_job.json"
@@ -76,20 +75,9 @@ def table(results: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def update_readme(text: str, block: str) -> str:
-    """:return: ``text`` with ``block`` between the main-job markers"""
-    return replace_block(text, MARKERS, block)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Command-line entry point.
-
-    :param argv: arguments (default: ``sys.argv[1:]``)
-    :return: exit status
-    """
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    """:param argv: command-line arguments (default: ``sys.argv[1:]``) :return: exit status"""
+    parser = script_parser(__doc__, DEFAULT_OUT)
     args = parser.parse_args(argv)
     model_path = args.out.with_suffix(".zip")
     results = [run_main_job(busy, model_path) for busy in (False, True)]

@@ -11,7 +11,6 @@ something on a quiet machine. Writes the JSON results and the markdown table, an
 the table in README.md between its ``memory-images`` markers.
 """
 
-import argparse
 import json
 import multiprocessing
 import resource
@@ -25,7 +24,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from benchmarks.readme_blocks import README, publish, replace_block
+from benchmarks.readme_blocks import README, publish, script_parser
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_OUT = REPO_ROOT / "benchmarks" / "results" / "memory_images.json"
@@ -96,33 +95,21 @@ def measure(size: int) -> dict[str, Any]:
 
 def table(results: Sequence[dict[str, Any]]) -> str:
     """:return: the markdown table of the results"""
-    lines = [
-        "| transitions in the memory | the memory's own arrays | peak RSS of the process | of which before `learn()` |",
-        "|---|---|---|---|",
+    header = (
+        "| transitions in the memory | the memory's own arrays | peak RSS of the process | of which before `learn()` |"
+    )
+    rows = [
+        f"| {result['transitions']:,} | {result['memory_mib'] / 1024:.2f} GiB "
+        f"| {result['peak_rss_mib'] / 1024:.2f} GiB | {result['peak_rss_before_learn_mib'] / 1024:.2f} GiB |"
+        for result in results
     ]
-    for result in results:
-        lines.append(
-            f"| {result['transitions']:,} | {result['memory_mib'] / 1024:.2f} GiB "
-            f"| {result['peak_rss_mib'] / 1024:.2f} GiB | {result['peak_rss_before_learn_mib'] / 1024:.2f} GiB |"
-        )
-    return "\n".join(lines)
-
-
-def update_readme(text: str, block: str) -> str:
-    """:return: ``text`` with ``block`` between the memory-images markers"""
-    return replace_block(text, MARKERS, block)
+    return "\n".join([header, "|---|---|---|---|", *rows])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Command-line entry point.
-
-    :param argv: arguments (default: ``sys.argv[1:]``)
-    :return: exit status
-    """
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    """:param argv: command-line arguments (default: ``sys.argv[1:]``) :return: exit status"""
+    parser = script_parser(__doc__, DEFAULT_OUT)
     parser.add_argument("--sizes", type=int, nargs="+", default=[20_000, 50_000])
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--no-readme", action="store_true", help="do not write the table into README.md")
     args = parser.parse_args(argv)
     results = []

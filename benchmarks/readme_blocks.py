@@ -3,6 +3,7 @@ Measured tables that the top-level README shows: each script writes its results 
 the table between its own pair of markers in README.md, so the README holds no number copied by hand.
 """
 
+import argparse
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -38,3 +39,14 @@ def publish(
     out.with_suffix(".md").write_text(block + "\n")
     if readme is not None:
         readme.write_text(replace_block(readme.read_text(), markers, block))
+
+
+def script_parser(description: str | None, default_out: Path) -> argparse.ArgumentParser:
+    """
+    :param description: the script's docstring
+    :param default_out: where its results JSON goes by default
+    :return: a measurement script's command-line parser, with its ``--out``
+    """
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=default_out, help="the results JSON (the table goes beside it)")
+    return parser

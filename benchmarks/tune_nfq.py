@@ -206,12 +206,7 @@ def summary_table(summaries: Sequence[CandidateSummary], env_id: str, to_budget:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """
-    Command-line entry point.
-
-    :param argv: arguments (default: ``sys.argv[1:]``)
-    :return: exit status (1 if a job failed)
-    """
+    """:param argv: command-line arguments (default: ``sys.argv[1:]``) :return: exit status (1 if a job failed)"""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", required=True, choices=sorted(CANDIDATES))

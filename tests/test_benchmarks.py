@@ -640,7 +640,7 @@ def test_memory_images_script_measures_a_run_in_its_own_process(tmp_path: Path) 
 def test_readme_memory_table_is_the_generated_one() -> None:
     payload = json.loads(memory_images.DEFAULT_OUT.read_text())
     text = readme_blocks.README.read_text()
-    assert memory_images.update_readme(text, memory_images.table(payload["results"])) == text
+    assert readme_blocks.replace_block(text, memory_images.MARKERS, memory_images.table(payload["results"])) == text
 
 
 # --- scaling of the growing memory's cost -------------------------------------------------------------------------
@@ -695,4 +695,4 @@ def test_readme_main_job_table_is_the_generated_one() -> None:
     assert [result["busy_process_beside"] for result in payload["results"]] == [False, True]
     assert all(result["threads"] == 1 for result in payload["results"])
     text = readme_blocks.README.read_text()
-    assert main_job.update_readme(text, main_job.table(payload["results"])) == text
+    assert readme_blocks.replace_block(text, main_job.MARKERS, main_job.table(payload["results"])) == text

@@ -37,6 +37,9 @@ import yaml
 
 from benchmarks import configs, readme_blocks
 from benchmarks.run import DEFAULT_BOOK_RESULTS, DEFAULT_RESULTS, REPO_ROOT, read_results
+from benchmarks.scaling import DEFAULT_OUT as DEFAULT_SCALING
+from benchmarks.scaling import spread as scaling_spread
+from benchmarks.scaling import table as scaling_table
 
 BOOTSTRAP_REPS = 2000
 #: A config "solves" an env when at least this fraction of its seeds solved it (4/5).
@@ -495,6 +498,7 @@ def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
         "steps_ratio": {"algo", "baseline", "env", "high"},
         "final_score": {"algo", "env"},
         "solved_envs": {"algo", "at_least"},
+        "flat_fit_cost": {"mode", "tolerance"},
     }
     optional = {"steps_ratio": {"low"}}
     targets = yaml.safe_load(path.read_text())
@@ -511,11 +515,36 @@ def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
     return list(targets)
 
 
-def judge(cells_by_env: dict[str, list[Cell]], target: dict[str, Any]) -> list[tuple[str, tuple[str, str]]]:
+def flat_fit_cost_target(scaling: dict[str, Any] | None, mode: str, tolerance: float) -> tuple[str, str]:
+    """
+    :param scaling: the scaling run (``benchmarks.scaling``'s JSON), if any
+    :return: (verdict, text) for "the mode's fit seconds per 1,000 steps stay within ``tolerance`` of their mean"
+    """
+    if scaling is None or mode not in scaling["bins"]:
+        return "not enough data", f"no scaling run of {mode}"
+    rows = scaling["bins"][mode]
+    if rows[-1]["memory_up_to"] < 200_000:
+        return "not enough data", f"the run reached {rows[-1]['memory_up_to']:,} transitions, not 200,000"
+    spread = scaling_spread(rows)
+    values = ", ".join(f"{row['per_1000_steps']:.2f}" for row in rows)
+    text = f"largest departure from the mean {spread:.0%} (bins: {values})"
+    return ("met" if spread <= tolerance else "not met"), text
+
+
+def judge(
+    cells_by_env: dict[str, list[Cell]], target: dict[str, Any], scaling: dict[str, Any] | None = None
+) -> list[tuple[str, tuple[str, str]]]:
     """
     :param target: one target of the targets file
+    :param scaling: the scaling run, for ``flat_fit_cost`` targets
     :return: (what the target says, (verdict, measured)) for each reading of it (one per evaluation period)
     """
+    if target["kind"] == "flat_fit_cost":
+        name = (
+            f"{target['mode']}: fit seconds per 1,000 env steps within ±{target['tolerance']:.0%} of their mean, "
+            "memory 10k-200k"
+        )
+        return [(name, flat_fit_cost_target(scaling, target["mode"], float(target["tolerance"])))]
     algo = target["algo"]
     if target["kind"] == "solved_envs":
         name = f"{algo} (one config) solves ≥ {target['at_least']} of the {len(configs.ENVS)} envs in ≥ 4/5 seeds"
@@ -541,11 +570,13 @@ def judge(cells_by_env: dict[str, list[Cell]], target: dict[str, Any]) -> list[t
     ]
 
 
-def target_lines(cells_by_env: dict[str, list[Cell]], targets: Sequence[dict[str, Any]]) -> list[str]:
+def target_lines(
+    cells_by_env: dict[str, list[Cell]], targets: Sequence[dict[str, Any]], scaling: dict[str, Any] | None = None
+) -> list[str]:
     """:return: the markdown lines of the targets section"""
     lines = ["| target | verdict | measured |", "|---|---|---|"]
     for target in targets:
-        for name, (verdict, text) in judge(cells_by_env, target):
+        for name, (verdict, text) in judge(cells_by_env, target, scaling):
             lines.append(f"| {name} | **{verdict}** | {text} |")
     return lines
 
@@ -745,6 +776,7 @@ def build_report(
     results_path: Path,
     command: str,
     book_records: Sequence[dict[str, Any]] = (),
+    scaling: dict[str, Any] | None = None,
 ) -> str:
     """
     Write ``README.md`` and the learning-curve PNGs into ``out_dir``.
@@ -754,6 +786,7 @@ def build_report(
     :param results_path: where the records came from (named in the report)
     :param command: the report command (printed in the report)
     :param book_records: result lines of the runner's ``--protocol book`` (their own section)
+    :param scaling: the growing memory's scaling run (``benchmarks.scaling``'s JSON; its own section), if any
     :return: the markdown text
     """
     cells_by_env = build_cells(records)
@@ -797,7 +830,7 @@ def build_report(
         "",
         f"From `{TARGETS_FILE.relative_to(REPO_ROOT)}`.",
         "",
-        *target_lines(cells_by_env, read_targets()),
+        *target_lines(cells_by_env, read_targets(), scaling),
         "",
     ]
     for env, cells in cells_by_env.items():
@@ -818,10 +851,33 @@ def build_report(
                 "",
             ]
     lines += book_protocol_lines(book_records)
+    lines += scaling_lines(scaling)
     text = "\n".join(lines)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "README.md").write_text(text)
     return text
+
+
+def scaling_lines(scaling: dict[str, Any] | None) -> list[str]:
+    """:return: the report's section on the growing memory's fit cost against its size (none without a run)"""
+    if scaling is None:
+        return []
+    spreads = "; ".join(f"{name}: {scaling_spread(rows):.0%}" for name, rows in scaling["bins"].items())
+    return [
+        "## The growing memory's fit cost against its size",
+        "",
+        f"`{scaling['command']}` on {scaling['env']}, seed {scaling['seed']}, {scaling['torch_threads']} torch "
+        f"thread(s), on `{scaling['machine']}`: every fit timed, fits grouped by the memory's size when they ran, "
+        "and each bin's fit seconds divided by the env steps collected in it. A mode whose cost per step stays flat "
+        "has a total cost linear in the steps.",
+        "",
+        scaling_table(scaling["bins"]),
+        "",
+        f"Largest departure of a bin from the mode's mean: {spreads}.",
+        "",
+        f"![fit cost against memory size]({DEFAULT_SCALING.with_suffix('.png').name})",
+        "",
+    ]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -837,6 +893,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--book-results", type=Path, default=DEFAULT_BOOK_RESULTS, help="the runner's --protocol book results"
     )
+    parser.add_argument("--scaling", type=Path, default=DEFAULT_SCALING, help="benchmarks.scaling's JSON, if run")
     parser.add_argument("--out-dir", type=Path, help="where README.md and the PNGs go (default: the results' folder)")
     args = parser.parse_args(argv)
     records = read_results(args.results)
@@ -847,7 +904,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = shlex.join(["python", "-m", "benchmarks.report", *argv])
     results_path = args.results.resolve()
     shown_path = results_path.relative_to(REPO_ROOT) if results_path.is_relative_to(REPO_ROOT) else results_path
-    print(build_report(records, out_dir, shown_path, command, read_results(args.book_results)))
+    scaling = json.loads(args.scaling.read_text()) if args.scaling.is_file() else None
+    print(build_report(records, out_dir, shown_path, command, read_results(args.book_results), scaling))
     print(f"\nwrote {out_dir / 'README.md'} and {len(build_cells(records))} PNG(s)")
     if results_path == DEFAULT_RESULTS.resolve():  # the project's own results: their summary goes into its README
         readme = readme_blocks.README

@@ -2,9 +2,11 @@
 How the growing memory's fitting cost scales: fit seconds per 1,000 env steps against the memory's size, for fixed
 rounds (``nfq-shared``: a refit every 256 steps) and for rounds that lengthen with the memory (``round_fraction``).
 
-    python -m benchmarks.scaling [--env CartPole-v1] [--max-steps 200000] [--round-fraction 0.1] [--seed 0]
-        [--out benchmarks/results/scaling.json]
+    python -m benchmarks.scaling [--env CartPole-v1] [--max-steps 200000] [--configs nfq-shared ...]
+        [--round-fraction 0.1] [--seed 0] [--out benchmarks/results/scaling.json]
 
+Modes: each shipped config named by ``--configs`` (default ``nfq-shared``), and with ``--round-fraction f`` the first
+of them with rounds of ``f`` x the memory; each with a memory as large as the run, so that it never drops a transition.
 One run per mode, one after the other in this process (1 torch thread). Every fit is timed; the fits are then
 grouped by the memory size they ran at (bins ending at 10k, 20k, 50k, 100k, 200k transitions) and each bin reports
 its fit seconds per 1,000 env steps collected in it. A mode whose cost per collected step stays flat as the memory
@@ -81,6 +83,44 @@ def per_bin(fits: Sequence[dict[str, float]], bins: Sequence[int] = BINS) -> lis
     return rows
 
 
+def spread(rows: Sequence[dict[str, float]]) -> float:
+    """
+    :param rows: one mode's bins (see :func:`per_bin`)
+    :return: the largest relative departure of a bin's fit seconds per 1,000 steps from the mean over the bins (0:
+        flat; 0.3: some bin is 30% above or below the mean)
+    """
+    values = [row["per_1000_steps"] for row in rows]
+    mean = sum(values) / len(values)
+    return max(abs(value / mean - 1) for value in values)
+
+
+def plot(runs: dict[str, list[dict[str, float]]], path: Path, title: str) -> None:
+    """
+    Write the scaling figure: fit seconds per 1,000 env steps against the memory's size, one line per mode.
+
+    :param runs: mode -> its bins
+    :param path: the PNG
+    :param title: the figure's title
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(7, 4))
+    for name, rows in runs.items():
+        axes.plot([row["memory_up_to"] for row in rows], [row["per_1000_steps"] for row in rows], "o-", label=name)
+    axes.set_xscale("log")
+    axes.set_xlabel("transitions in the memory (upper end of the bin)")
+    axes.set_ylabel("fit seconds per 1,000 env steps")
+    axes.set_title(title, fontsize="medium")
+    axes.legend(fontsize="small")
+    axes.grid(alpha=0.3)
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
 def table(runs: dict[str, list[dict[str, float]]]) -> str:
     """:return: the markdown table: one row per bin, one column per mode"""
     names = list(runs)
@@ -108,21 +148,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="CartPole-v1")
     parser.add_argument("--max-steps", type=int, default=BINS[-1])
-    parser.add_argument("--round-fraction", type=float, default=0.1)
+    parser.add_argument("--configs", nargs="+", default=["nfq-shared"], help="shipped config names")
+    parser.add_argument("--round-fraction", type=float, help="also run the first config with this round_fraction")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = parser.parse_args(argv)
     th.set_num_threads(1)
-    shared = nfq_kwargs("nfq-shared", args.env)
-    # a buffer as large as the run, so the memory never drops transitions
-    modes = {
-        "nfq-shared (fixed rounds)": {**shared, "buffer_size": args.max_steps},
-        f"nfq-shared, round_fraction={args.round_fraction:g}": {
-            **shared,
-            "buffer_size": args.max_steps,
+    modes = {name: {**nfq_kwargs(name, args.env), "buffer_size": args.max_steps} for name in args.configs}
+    if args.round_fraction is not None:
+        first = args.configs[0]
+        modes[f"{first}, round_fraction={args.round_fraction:g}"] = {
+            **modes[first],
             "round_fraction": args.round_fraction,
-        },
-    }
+        }
     runs: dict[str, list[dict[str, float]]] = {}
     raw: dict[str, list[dict[str, float]]] = {}
     for name, kwargs in modes.items():
@@ -146,6 +184,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.write_text(json.dumps(payload, indent=1) + "\n")
     block = table(runs)
     args.out.with_suffix(".md").write_text(block + "\n")
+    plot(runs, args.out.with_suffix(".png"), f"{args.env}, seed {args.seed}, 1 torch thread")
     print(block)
     return 0
 

@@ -655,6 +655,25 @@ def test_scaling_script_times_every_fit_of_both_modes(tmp_path: Path) -> None:
     # rounds of max(256, 0.5 x memory): 256, 256, 256, 384, 576; the last 320 steps wait for their round's end
     assert [fit["memory"] for fit in lengthening] == [256, 512, 768, 1152, 1728]
     assert payload["torch_threads"] == 1 and out.with_suffix(".md").read_text().startswith("| memory")
+    assert out.with_suffix(".png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_flat_fit_cost_target_is_judged_on_the_scaling_run() -> None:
+    def bins(values: list[float]) -> list[dict[str, float]]:
+        return [
+            {"memory_up_to": high, "steps": 1000.0, "seconds": value, "per_1000_steps": value}
+            for high, value in zip(scaling.BINS, values, strict=False)
+        ]
+
+    payload = {"bins": {"linear": bins([1.0, 1.2, 0.8, 1.0, 1.0]), "quadratic": bins([1.0, 2.0, 4.0, 8.0, 16.0])}}
+    assert scaling.spread(payload["bins"]["linear"]) == pytest.approx(0.2)
+    assert report.flat_fit_cost_target(payload, "linear", 0.3)[0] == "met"
+    assert report.flat_fit_cost_target(payload, "linear", 0.1)[0] == "not met"
+    assert report.flat_fit_cost_target(payload, "quadratic", 0.3)[0] == "not met"
+    assert report.flat_fit_cost_target(None, "linear", 0.3)[0] == "not enough data"
+    short = {"bins": {"linear": bins([1.0, 1.0, 1.0])}}
+    verdict, text = report.flat_fit_cost_target(short, "linear", 0.3)
+    assert verdict == "not enough data" and "50,000 transitions" in text
 
 
 def test_scaling_bins_divide_fit_seconds_by_the_steps_collected_in_each_bin() -> None:

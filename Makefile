@@ -8,6 +8,8 @@
 
 VENV ?= .venv
 PYTHON := $(VENV)/bin/python
+# The one pin: the torch release the project is tested with, whose CPU build the CI machines hold; `make TORCH=...`
+# picks another (README.md, Install, says how to get a CPU build elsewhere).
 TORCH ?= torch==2.13.0
 CORE := $(VENV)/.sb3-nfq-core
 DEV := $(VENV)/.sb3-nfq-dev

@@ -866,8 +866,10 @@ def scaling_lines(scaling: dict[str, Any] | None) -> list[str]:
     return [
         "## The growing memory's fit cost against its size",
         "",
-        f"`{scaling['command']}` on {scaling['env']}, seed {scaling['seed']}, {scaling['torch_threads']} torch "
-        f"thread(s), on `{scaling['machine']}`: every fit timed, fits grouped by the memory's size when they ran, "
+        " and ".join(f"`{command}`" for command in scaling["commands"])
+        + f" on {scaling['env']}, seed {scaling['seed']}, {scaling['torch_threads']} torch thread(s), on "
+        + ", ".join(f"`{machine}`" for machine in scaling["machines"])
+        + ": every fit timed, fits grouped by the memory's size when they ran, "
         "and each bin's fit seconds divided by the env steps collected in it. A mode whose cost per step stays flat "
         "has a total cost linear in the steps.",
         "",

@@ -138,6 +138,25 @@ def table(runs: dict[str, list[dict[str, float]]]) -> str:
     return "\n".join(lines)
 
 
+def merged(earlier: dict[str, Any], later: dict[str, Any]) -> dict[str, Any]:
+    """
+    :param earlier: a scaling run's payload (as written; one from before ``commands`` had a single ``command``)
+    :param later: the payload of more modes, on the same env, seed and step count
+    :return: one payload with the modes of both (the later run's where a mode is in both)
+    """
+    for key in ("env", "seed", "max_steps", "torch_threads"):
+        if earlier[key] != later[key]:
+            raise ValueError(f"--add: the run in the file has {key}={earlier[key]!r}, this one {later[key]!r}")
+    listed = {"commands": "command", "machines": "machine"}
+    out = dict(later)
+    for key, single in listed.items():
+        before = earlier.get(key, [earlier[single]] if single in earlier else [])
+        out[key] = list(dict.fromkeys([*before, *later[key]]))
+    out["bins"] = {**earlier["bins"], **later["bins"]}
+    out["fits"] = {**earlier["fits"], **later["fits"]}
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """
     Command-line entry point.
@@ -152,6 +171,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--round-fraction", type=float, help="also run the first config with this round_fraction")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser.add_argument("--add", action="store_true", help="add these modes to the run already in --out")
     args = parser.parse_args(argv)
     th.set_num_threads(1)
     modes = {name: {**nfq_kwargs(name, args.env), "buffer_size": args.max_steps} for name in args.configs}
@@ -169,17 +189,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{name}: {len(raw[name])} fits, {sum(fit['seconds'] for fit in raw[name]):.1f} s", flush=True)
     from benchmarks.run import machine_line, package_versions
 
+    command = " ".join(["python -m benchmarks.scaling", *(argv if argv is not None else sys.argv[1:])])
     payload = {
-        "command": " ".join(["python -m benchmarks.scaling", *(argv if argv is not None else sys.argv[1:])]),
+        "commands": [command],
         "env": args.env,
         "max_steps": args.max_steps,
         "seed": args.seed,
         "torch_threads": th.get_num_threads(),
-        "machine": machine_line(),
+        "machines": [machine_line()],
         "versions": package_versions(),
         "bins": runs,
         "fits": raw,
     }
+    if args.add:
+        payload = merged(json.loads(args.out.read_text()), payload)
+        runs = payload["bins"]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(payload, indent=1) + "\n")
     block = table(runs)

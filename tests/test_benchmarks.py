@@ -656,6 +656,14 @@ def test_scaling_script_times_every_fit_of_both_modes(tmp_path: Path) -> None:
     assert [fit["memory"] for fit in lengthening] == [256, 512, 768, 1152, 1728]
     assert payload["torch_threads"] == 1 and out.with_suffix(".md").read_text().startswith("| memory")
     assert out.with_suffix(".png").read_bytes().startswith(b"\x89PNG")
+    # another mode added to the same run: both are in the file, and the report's section names both commands
+    assert scaling.main(["--max-steps", "2048", "--configs", "nfq-tuned", "--out", str(out), "--add"]) == 0
+    both = json.loads(out.read_text())
+    assert list(both["bins"]) == [*payload["bins"], "nfq-tuned"] and len(both["commands"]) == 2
+    section = "\n".join(report.scaling_lines(both))
+    assert "--add`" in section and "nfq-tuned: fit s per 1,000 steps" in section
+    with pytest.raises(ValueError, match="seed=0, this one 1"):
+        scaling.main(["--max-steps", "2048", "--seed", "1", "--out", str(out), "--add"])
 
 
 def test_flat_fit_cost_target_is_judged_on_the_scaling_run() -> None:

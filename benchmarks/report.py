@@ -499,6 +499,7 @@ def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
         "final_score": {"algo", "env"},
         "solved_envs": {"algo", "at_least"},
         "flat_fit_cost": {"mode", "tolerance"},
+        "seconds_ratio": {"algo", "baseline", "envs", "high"},
     }
     optional = {"steps_ratio": {"low"}}
     targets = yaml.safe_load(path.read_text())
@@ -513,6 +514,48 @@ def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
                 f"got {sorted(keys)}"
             )
     return list(targets)
+
+
+def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baseline: str) -> tuple[Cell, Cell] | None:
+    """
+    :param records: result lines
+    :return: the runs of ``algo`` and ``baseline`` on ``env`` trained to the budget by one runner command (so on the
+        same machine in the same session), the command with the most seeds of both; ``None`` if no command ran both
+    """
+    by_command: dict[str, dict[str, list[dict[str, Any]]]] = defaultdict(lambda: defaultdict(list))
+    for record in records:
+        if record["env"] == env and record["algo"] in (algo, baseline) and not record.get("stop_at_solve"):
+            by_command[record["command"]][record["algo"]].append(record)
+    both = [runs for runs in by_command.values() if runs[algo] and runs[baseline]]
+    if not both:
+        return None
+    runs = max(both, key=lambda runs: min(len(runs[algo]), len(runs[baseline])))
+    num, den = (
+        Cell(env, name, runs[name][0]["budget"], runs[name][0]["config_hash"], runs[name]) for name in (algo, baseline)
+    )
+    return num, den
+
+
+def seconds_ratio_target(
+    records: Sequence[dict[str, Any]], envs: Sequence[str], algo: str, baseline: str, high: float
+) -> tuple[str, str]:
+    """
+    :return: (verdict, text) for "median training seconds to the budget of ``algo`` / of ``baseline`` <= ``high`` on
+        every env of ``envs``", each pair run side by side (see :func:`side_by_side`)
+    """
+    parts, verdicts = [], []
+    for env in envs:
+        pair = side_by_side(records, env, algo, baseline)
+        if pair is None or min(pair[0].n, pair[1].n) < MIN_SEEDS:
+            have = f"{min(pair[0].n, pair[1].n)} seeds" if pair else "none"
+            parts.append(f"{env}: needs {MIN_SEEDS} seeds of both run to the budget by one command ({have})")
+            verdicts.append("not enough data")
+            continue
+        num, den = (float(np.median(cell.train_seconds())) for cell in pair)
+        parts.append(f"{env}: {num / den:.2f} ({num:.0f} s / {den:.0f} s, {pair[0].n} seeds)")
+        verdicts.append("met" if num / den <= high else "not met")
+    verdict = "not met" if "not met" in verdicts else "not enough data" if "not enough data" in verdicts else "met"
+    return verdict, "; ".join(parts)
 
 
 def flat_fit_cost_target(scaling: dict[str, Any] | None, mode: str, tolerance: float) -> tuple[str, str]:
@@ -532,13 +575,24 @@ def flat_fit_cost_target(scaling: dict[str, Any] | None, mode: str, tolerance: f
 
 
 def judge(
-    cells_by_env: dict[str, list[Cell]], target: dict[str, Any], scaling: dict[str, Any] | None = None
+    cells_by_env: dict[str, list[Cell]],
+    target: dict[str, Any],
+    scaling: dict[str, Any] | None = None,
+    records: Sequence[dict[str, Any]] = (),
 ) -> list[tuple[str, tuple[str, str]]]:
     """
     :param target: one target of the targets file
     :param scaling: the scaling run, for ``flat_fit_cost`` targets
+    :param records: the result lines, for ``seconds_ratio`` targets
     :return: (what the target says, (verdict, measured)) for each reading of it (one per evaluation period)
     """
+    if target["kind"] == "seconds_ratio":
+        envs = list(configs.ENVS) if target["envs"] == "all" else list(target["envs"])
+        name = (
+            f"{target['algo']} / {target['baseline']} median training seconds to the budget ≤ {target['high']:g}, "
+            f"run side by side, on {', '.join(envs)}"
+        )
+        return [(name, seconds_ratio_target(records, envs, target["algo"], target["baseline"], target["high"]))]
     if target["kind"] == "flat_fit_cost":
         name = (
             f"{target['mode']}: fit seconds per 1,000 env steps within ±{target['tolerance']:.0%} of their mean, "
@@ -571,12 +625,15 @@ def judge(
 
 
 def target_lines(
-    cells_by_env: dict[str, list[Cell]], targets: Sequence[dict[str, Any]], scaling: dict[str, Any] | None = None
+    cells_by_env: dict[str, list[Cell]],
+    targets: Sequence[dict[str, Any]],
+    scaling: dict[str, Any] | None = None,
+    records: Sequence[dict[str, Any]] = (),
 ) -> list[str]:
     """:return: the markdown lines of the targets section"""
     lines = ["| target | verdict | measured |", "|---|---|---|"]
     for target in targets:
-        for name, (verdict, text) in judge(cells_by_env, target, scaling):
+        for name, (verdict, text) in judge(cells_by_env, target, scaling, records):
             lines.append(f"| {name} | **{verdict}** | {text} |")
     return lines
 
@@ -830,7 +887,7 @@ def build_report(
         "",
         f"From `{TARGETS_FILE.relative_to(REPO_ROOT)}`.",
         "",
-        *target_lines(cells_by_env, read_targets(), scaling),
+        *target_lines(cells_by_env, read_targets(), scaling, records),
         "",
     ]
     for env, cells in cells_by_env.items():

@@ -477,6 +477,27 @@ def test_targets_are_read_from_data_and_bad_ones_are_refused(results_file: Path,
         report.read_targets(path)
 
 
+def test_seconds_ratio_is_judged_only_on_runs_made_side_by_side(results_file: Path) -> None:
+    lines = _lines(results_file)
+    book = next(record for record in lines if record["algo"] == "nfq-book")
+    dqn = next(record for record in lines if record["algo"] == "dqn-zoo")
+
+    def runs(first: dict[str, Any], seconds: float, command: str, **changes: Any) -> list[dict[str, Any]]:
+        return [dict(first, seed=seed, train_seconds=seconds, command=command, **changes) for seed in range(5)]
+
+    together = [*runs(book, 30.0, "together"), *runs(dqn, 20.0, "together")]
+    verdict, text = report.seconds_ratio_target(together, ["CartPole-v1"], "nfq-book", "dqn-zoo", 1.5)
+    assert (verdict, text) == ("met", "CartPole-v1: 1.50 (30 s / 20 s, 5 seeds)")
+    assert report.seconds_ratio_target(together, ["CartPole-v1"], "nfq-book", "dqn-zoo", 1.4)[0] == "not met"
+    # the baseline's faster runs of another session, and runs stopped at the solve, do not count
+    apart = [*together, *runs(dqn, 5.0, "another day"), *runs(book, 1.0, "together", stop_at_solve=True)]
+    assert report.seconds_ratio_target(apart, ["CartPole-v1"], "nfq-book", "dqn-zoo", 1.5)[0] == "met"
+    verdict, text = report.seconds_ratio_target(runs(book, 30.0, "alone"), ["CartPole-v1"], "nfq-book", "dqn-zoo", 2.0)
+    assert verdict == "not enough data" and "(none)" in text
+    verdict, _ = report.seconds_ratio_target(together, ["CartPole-v1", "Acrobot-v1"], "nfq-book", "dqn-zoo", 2.0)
+    assert verdict == "not enough data"
+
+
 def test_report_judges_staying_solved_only_on_runs_trained_to_the_budget(results_file: Path) -> None:
     first = next(record for record in _lines(results_file) if record["algo"] == "nfq-book")
     to_budget = [dict(first, seed=seed, solved=True, steps_to_solve=512, final_score=480.0) for seed in range(2)]

@@ -1,11 +1,16 @@
-"""The pieces of a fit that are not NFQ's own: network modes, mini-batch epochs, taking rows of a batch."""
+"""
+The pieces of NFQ's fit: TD targets, the loss and its gradient over a batch of any size, network modes, mini-batch
+epochs, taking rows of a batch.
+"""
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch as th
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
+
+from sb3_nfq.memory import rows_per_chunk
 
 
 @contextlib.contextmanager
@@ -66,3 +71,101 @@ def take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferS
         dones=batch.dones[indices],
         rewards=batch.rewards[indices],
     )
+
+
+def td_targets(q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float) -> th.Tensor:
+    """
+    :param q_net: the Q-network
+    :param data: transitions
+    :param gamma: the discount factor
+    :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the network in eval mode (no Dropout,
+        BatchNorm's running statistics used and left as they are), as a constant (no graph), shape ``(n, 1)``;
+        computed in chunks so that a large memory fits in memory.
+    """
+    with th.no_grad(), eval_mode(q_net):
+        n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.next_observations)
+        if n_transitions <= chunk_rows:
+            next_q_values = q_net(data.next_observations).max(dim=1).values
+        else:
+            chunks = th.arange(n_transitions, device=data.rewards.device).split(chunk_rows)
+            next_q_values = th.cat(
+                [q_net(take_rows(data.next_observations, rows)).max(dim=1).values for rows in chunks]
+            )
+        return data.rewards + (1 - data.dones) * gamma * next_q_values.reshape(-1, 1)
+
+
+def states_and_successors(batch: ReplayBufferSamples, n_envs: int) -> tuple[th.Tensor, th.Tensor] | None:
+    """
+    In a round, the next state of a transition is usually the state of the same env's next transition (``n_envs``
+    rows later): only episode ends and the last steps bring new states. So the targets need a forward pass over those
+    few new states only, the rest of ``Q(s', .)`` being rows of ``Q(s, .)``: the same numbers as a pass over every
+    ``s'``, for about half the work.
+
+    :param batch: the whole memory
+    :param n_envs: how many envs the rows interleave
+    :return: ``(new_next_observations, next_rows)``: the ``s'`` not found among the ``s``, and for each transition
+        ``i`` the row of ``cat([Q(s, .), Q(new_next_observations, .)])`` holding ``Q(s'_i, .)``. ``None`` for ``Dict``
+        observations.
+    """
+    observations, next_observations = batch.observations, batch.next_observations
+    if isinstance(observations, dict) or isinstance(next_observations, dict):
+        return None
+    n_transitions, offset = len(observations), n_envs
+    is_next_state = th.zeros(n_transitions, dtype=th.bool, device=observations.device)
+    if n_transitions > offset:
+        successors = next_observations[:-offset] == observations[offset:]
+        is_next_state[:-offset] = successors.reshape(n_transitions - offset, -1).all(dim=1)
+    new_rows = th.nonzero(~is_next_state).flatten()
+    next_rows = th.arange(n_transitions, device=observations.device) + offset
+    next_rows[new_rows] = n_transitions + th.arange(len(new_rows), device=observations.device)
+    return next_observations[new_rows], next_rows
+
+
+def loss_and_gradient(
+    q_net: th.nn.Module,
+    loss_fn: Callable[..., th.Tensor],
+    gamma: float,
+    data: ReplayBufferSamples,
+    targets: th.Tensor | None,
+    shared_states: tuple[th.Tensor, th.Tensor] | None,
+) -> tuple[float, th.Tensor, th.Tensor]:
+    """
+    The loss of one gradient step over ``data``, and its gradient (``backward``). When ``data`` holds more rows than
+    one forward pass may take (:func:`~sb3_nfq.memory.rows_per_chunk`: a large memory of images), the gradient is
+    accumulated over chunks of rows: the same full-batch gradient, in bounded memory (a BatchNorm layer then
+    normalises each chunk on its own).
+
+    :param q_net: the Q-network
+    :param loss_fn: the regression loss (``torch.nn.functional``'s signature)
+    :param gamma: the discount factor
+    :param data: the transitions of this gradient step
+    :param targets: their TD targets if already known (fixed for the iteration), else ``None``: computed now
+    :param shared_states: from :func:`states_and_successors` (``data`` is then the whole memory, in one pass: its
+        ``Q(s', .)`` are read off the pass that computes ``Q(s, a)``), else ``None``
+    :return: the loss, and ``Q(s, a)`` and the targets (of the last chunk), for logging
+    """
+    n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.observations)
+    if targets is None and shared_states is not None:
+        new_next_observations, next_rows = shared_states
+        all_q_values = q_net(data.observations)
+        with th.no_grad():
+            q_candidates = th.cat([all_q_values.detach(), q_net(new_next_observations)])
+            next_q_values = q_candidates[next_rows].max(dim=1).values.reshape(-1, 1)
+            targets = data.rewards + (1 - data.dones) * gamma * next_q_values
+        q_values = th.gather(all_q_values, 1, data.actions.long())
+    elif n_transitions <= chunk_rows:
+        targets = td_targets(q_net, data, gamma) if targets is None else targets
+        q_values = th.gather(q_net(data.observations), 1, data.actions.long())
+    else:
+        targets = td_targets(q_net, data, gamma) if targets is None else targets
+        loss_value = 0.0
+        for rows in th.arange(n_transitions, device=targets.device).split(chunk_rows):
+            q_values = th.gather(q_net(take_rows(data.observations, rows)), 1, data.actions[rows].long())
+            chunk_targets = targets[rows]
+            loss = loss_fn(q_values, chunk_targets, reduction="sum") / n_transitions
+            loss.backward()
+            loss_value += loss.item()
+        return loss_value, q_values, chunk_targets
+    loss = loss_fn(q_values, targets)
+    loss.backward()
+    return loss.item(), q_values, targets

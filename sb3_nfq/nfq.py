@@ -25,7 +25,14 @@ from stable_baselines3.common.type_aliases import (
 )
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
-from sb3_nfq.fitting import eval_mode, has_mode_dependent_layers, minibatch_indices, take, take_rows
+from sb3_nfq.fitting import (
+    has_mode_dependent_layers,
+    loss_and_gradient,
+    minibatch_indices,
+    states_and_successors,
+    take,
+    td_targets,
+)
 from sb3_nfq.memory import check_memory_fits, rows_per_chunk, stored_transitions
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.parameters import (
@@ -468,16 +475,20 @@ class NFQ(OffPolicyAlgorithm):
         # that computes the same in training and eval mode.
         one_pass = n_transitions <= rows_per_chunk(batch.observations)
         share = full_batch and one_pass and not has_mode_dependent_layers(self.q_net)
-        shared_states = self._states_and_successors(batch, n_envs) if share else None
+        shared_states = states_and_successors(batch, n_envs) if share else None
 
         losses = []
         for iteration in range(gradient_steps):
-            fixed_targets = self._td_targets(batch) if self.target_mode == "fixed_per_iteration" else None
+            # Classic fitted Q-iteration regresses on targets fixed for the iteration; the textbook recomputes them.
+            fixed = td_targets(self.q_net, batch, self.gamma) if self.target_mode == "fixed_per_iteration" else None
             for _ in range(self.fit_epochs):
                 for indices in minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
                     data = take(batch, indices)
+                    known = fixed if fixed is None or indices is None else fixed[indices]
                     self.policy.optimizer.zero_grad()
-                    loss_value, q_values, targets = self._loss_and_gradient(data, indices, fixed_targets, shared_states)
+                    loss_value, q_values, targets = loss_and_gradient(
+                        self.q_net, LOSSES[self.loss], self.gamma, data, known, shared_states
+                    )
                     if not math.isfinite(loss_value):
                         raise NFQDivergenceError(
                             f"NFQ loss became {loss_value} in round {self._n_rounds} (fitted iteration "
@@ -497,128 +508,6 @@ class NFQ(OffPolicyAlgorithm):
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
-
-    def _loss_and_gradient(
-        self,
-        data: ReplayBufferSamples,
-        indices: th.Tensor | None,
-        fixed_targets: th.Tensor | None,
-        shared_states: tuple[th.Tensor, th.Tensor] | None,
-    ) -> tuple[float, th.Tensor, th.Tensor]:
-        """
-        The loss of one gradient step over ``data``, and its gradient (``backward``). When ``data`` holds more rows
-        than one forward pass may take (:func:`~sb3_nfq.memory.rows_per_chunk`: a large memory of images), the
-        gradient is accumulated over chunks of rows: the same full-batch gradient, in bounded memory (a BatchNorm
-        layer then normalises each chunk on its own).
-
-        :param data: the transitions of this gradient step
-        :param indices: their rows in the memory (``None``: all of it)
-        :param fixed_targets: the iteration's targets of the whole memory (``"fixed_per_iteration"``), else ``None``
-        :param shared_states: from :meth:`_states_and_successors`, else ``None``
-        :return: the loss, and ``Q(s, a)`` and the targets (of the last chunk), for logging
-        """
-        n_transitions = len(data.rewards)
-        chunk_rows = rows_per_chunk(data.observations)
-        if n_transitions <= chunk_rows:
-            q_values, targets = self._q_values_and_targets(data, indices, fixed_targets, shared_states)
-            loss = LOSSES[self.loss](q_values, targets)
-            loss.backward()
-            return loss.item(), q_values, targets
-        targets = self._targets(data, indices, fixed_targets)
-        loss_value = 0.0
-        for rows in th.arange(n_transitions, device=targets.device).split(chunk_rows):
-            q_values = th.gather(self.q_net(take_rows(data.observations, rows)), 1, data.actions[rows].long())
-            chunk_targets = targets[rows]
-            loss = LOSSES[self.loss](q_values, chunk_targets, reduction="sum") / n_transitions
-            loss.backward()
-            loss_value += loss.item()
-        return loss_value, q_values, chunk_targets
-
-    def _q_values_and_targets(
-        self,
-        data: ReplayBufferSamples,
-        indices: th.Tensor | None,
-        fixed_targets: th.Tensor | None,
-        shared_states: tuple[th.Tensor, th.Tensor] | None,
-    ) -> tuple[th.Tensor, th.Tensor]:
-        """
-        :param data: the transitions of this gradient step
-        :param indices: their rows in the memory (``None``: all of it)
-        :param fixed_targets: the iteration's targets of the whole memory (``"fixed_per_iteration"``), else ``None``
-        :param shared_states: from :meth:`_states_and_successors`, to get both in one forward pass, else ``None``
-        :return: ``Q(s, a)`` (with its graph) and the TD targets (constants: no gradient flows through them)
-        """
-        if fixed_targets is None and shared_states is not None:
-            # Q(s', .) of most transitions is Q(s, .) of a later one: read it, detached, from the pass that
-            # computes Q(s, a); only the few other next states need a (gradient-free) pass of their own.
-            new_next_observations, next_rows = shared_states
-            q_values = self.q_net(data.observations)
-            with th.no_grad():
-                q_candidates = th.cat([q_values.detach(), self.q_net(new_next_observations)])
-                next_q_values = q_candidates[next_rows].max(dim=1).values.reshape(-1, 1)
-                targets = data.rewards + (1 - data.dones) * self.gamma * next_q_values
-            return th.gather(q_values, dim=1, index=data.actions.long()), targets
-        targets = self._targets(data, indices, fixed_targets)
-        return th.gather(self.q_net(data.observations), dim=1, index=data.actions.long()), targets
-
-    def _targets(
-        self, data: ReplayBufferSamples, indices: th.Tensor | None, fixed_targets: th.Tensor | None
-    ) -> th.Tensor:
-        """
-        :param data: the transitions of this gradient step
-        :param indices: their rows in the memory (``None``: all of it)
-        :param fixed_targets: the iteration's targets of the whole memory (``"fixed_per_iteration"``), else ``None``
-        :return: their TD targets: the iteration's fixed ones, else computed now with the current network
-        """
-        if fixed_targets is not None:
-            return fixed_targets if indices is None else fixed_targets[indices]
-        return self._td_targets(data)
-
-    def _states_and_successors(self, batch: ReplayBufferSamples, n_envs: int) -> tuple[th.Tensor, th.Tensor] | None:
-        """
-        In a round, the next state of a transition is usually the state of the same env's next transition
-        (``n_envs`` rows later): only episode ends and the last steps bring new states. So the targets need a
-        forward pass over those few new states only, the rest of ``Q(s', .)`` being rows of ``Q(s, .)``:
-        the same numbers as a pass over every ``s'``, for about half the work.
-
-        :param batch: the whole memory
-        :param n_envs: how many envs the rows interleave
-        :return: ``(new_next_observations, next_rows)``: the ``s'`` not found among the ``s``, and for each
-            transition ``i`` the row of ``cat([Q(s, .), Q(new_next_observations, .)])`` holding ``Q(s'_i, .)``.
-            ``None`` for ``Dict`` observations.
-        """
-        observations, next_observations = batch.observations, batch.next_observations
-        if isinstance(observations, dict) or isinstance(next_observations, dict):
-            return None
-        n_transitions, offset = len(observations), n_envs
-        is_next_state = th.zeros(n_transitions, dtype=th.bool, device=observations.device)
-        if n_transitions > offset:
-            successors = next_observations[:-offset] == observations[offset:]
-            is_next_state[:-offset] = successors.reshape(n_transitions - offset, -1).all(dim=1)
-        new_rows = th.nonzero(~is_next_state).flatten()
-        next_rows = th.arange(n_transitions, device=observations.device) + offset
-        next_rows[new_rows] = n_transitions + th.arange(len(new_rows), device=observations.device)
-        return next_observations[new_rows], next_rows
-
-    def _td_targets(self, data: ReplayBufferSamples) -> th.Tensor:
-        """
-        :param data: transitions
-        :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the current network in eval mode (no
-            Dropout, BatchNorm's running statistics used and left as they are), as a constant (no graph), shape
-            ``(n, 1)``; computed in chunks so a large memory fits in memory.
-        """
-        with th.no_grad(), eval_mode(self.q_net):
-            n_transitions = len(data.rewards)
-            chunk_rows = rows_per_chunk(data.next_observations)
-            if n_transitions <= chunk_rows:
-                next_q_values = self.q_net(data.next_observations).max(dim=1).values
-            else:
-                chunks = th.arange(n_transitions, device=data.rewards.device).split(chunk_rows)
-                next_q_values = th.cat(
-                    [self.q_net(take_rows(data.next_observations, chunk)).max(dim=1).values for chunk in chunks]
-                )
-            next_q_values = next_q_values.reshape(-1, 1)
-            return data.rewards + (1 - data.dones) * self.gamma * next_q_values
 
     def _check_optimizer_gets_full_batches(self) -> None:
         """Refuse a ``batch_size`` that would split a round's fit into mini-batches for Rprop."""

@@ -20,6 +20,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from benchmarks.memory_images import Frames
 from sb3_nfq import NFQ
+from sb3_nfq.fitting import td_targets
 from tests.envs import LineWorld
 
 
@@ -118,7 +119,7 @@ def test_targets_are_deterministic_and_leave_batchnorm_statistics_alone() -> Non
     model.q_net.train(True)
     batch = model._stored_transitions()
     stats_before = (batch_norm.running_mean.clone(), batch_norm.running_var.clone())  # type: ignore[union-attr]
-    first, second = model._td_targets(batch), model._td_targets(batch)
+    first, second = td_targets(model.q_net, batch, model.gamma), td_targets(model.q_net, batch, model.gamma)
     th.testing.assert_close(first, second)  # no Dropout on the targets
     th.testing.assert_close(batch_norm.running_mean, stats_before[0])
     th.testing.assert_close(batch_norm.running_var, stats_before[1])

@@ -1,6 +1,6 @@
 """
-What NFQ's memory costs in RAM, and how much of it one forward pass may take: both in bytes, so that a memory of
-images is bounded like a memory of vectors.
+NFQ's memory: building it, what it costs in RAM, and how much of it one forward pass may take (both in bytes, so that
+a memory of images is bounded like a memory of vectors), and reading it whole.
 """
 
 import contextlib
@@ -9,9 +9,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer
-from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.type_aliases import ReplayBufferSamples, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.vec_env import VecNormalize
 
 #: Most bytes of float32 network input in one forward pass over the memory (target passes, and the chunks a
@@ -72,6 +73,63 @@ def check_memory_fits(observation_space: spaces.Space, capacity: int, memory: st
         f"({per_transition / 1024:,.1f} KiB each, observation and next observation) for memory={memory!r}, "
         f"but only {available / 2**30:.1f} GiB of RAM is available. Pass a smaller buffer_size "
         f"(at most about {fits:,} here; the memory then keeps the newest transitions)."
+    )
+
+
+#: Capacity of a growing memory when ``buffer_size`` is not given (SB3's replay buffer default).
+DEFAULT_GROWING_CAPACITY = 1_000_000
+
+
+def make_memory(
+    buffer_class: type[ReplayBuffer],
+    observation_space: spaces.Space,
+    action_space: spaces.Space,
+    train_freq: TrainFreq,
+    round_length: TrainFreq,
+    n_envs: int,
+    buffer_size: int | None,
+    memory: str,
+    device: th.device | str,
+) -> ReplayBuffer:
+    """
+    Create the transition memory: SB3's replay buffer, read whole, never sampled with replacement. It keeps
+    ``terminated`` and time-limit truncation apart (``handle_timeout_termination``).
+
+    :param buffer_class: ``ReplayBuffer``, or ``DictReplayBuffer`` for ``Dict`` observations
+    :param observation_space: the observations stored
+    :param action_space: the actions stored
+    :param train_freq: the round length asked for (named in errors)
+    :param round_length: a round, in ``env.step()`` calls or episodes
+    :param n_envs: number of envs
+    :param buffer_size: NFQ's ``buffer_size``
+    :param memory: ``"fresh"`` or ``"growing"``
+    :param device: where the buffer hands its samples
+    :return: an empty replay buffer for ``n_envs`` environments
+    """
+    asked = f"train_freq=({train_freq.frequency}, {train_freq.unit.value!r})"
+    if round_length.unit == TrainFrequencyUnit.EPISODE:
+        if n_envs > 1:
+            raise ValueError(
+                f"{asked} counts episodes, which needs a single environment; "
+                f"got n_envs={n_envs}. Count transitions instead, e.g. train_freq=1024."
+            )
+        if buffer_size is None and memory == "fresh":
+            raise ValueError(
+                f"{asked} counts episodes, so NFQ cannot know how many transitions a round "
+                "holds: pass buffer_size, the most transitions one round may hold (e.g. buffer_size=100_000)."
+            )
+        capacity = buffer_size or DEFAULT_GROWING_CAPACITY
+    else:
+        round_transitions = round_length.frequency * n_envs
+        if buffer_size is not None and buffer_size < round_transitions:
+            raise ValueError(
+                f"buffer_size={buffer_size} is smaller than one round of {round_transitions} transitions "
+                f"({asked} with n_envs={n_envs}); use buffer_size=None or a larger value."
+            )
+        capacity = buffer_size or (round_transitions if memory == "fresh" else DEFAULT_GROWING_CAPACITY)
+    check_memory_fits(observation_space, capacity, memory)
+    return buffer_class(
+        capacity, observation_space, action_space, device=device, n_envs=n_envs, handle_timeout_termination=True
     )
 
 

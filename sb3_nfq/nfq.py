@@ -13,8 +13,6 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.preprocessing import is_image_space
-from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import (
     GymEnv,
     MaybeCallback,
@@ -25,6 +23,8 @@ from stable_baselines3.common.type_aliases import (
 )
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
+from sb3_nfq.checkpoints import check_nfq_checkpoint
+from sb3_nfq.exploration import epsilon_greedy, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
     has_mode_dependent_layers,
     loss_and_gradient,
@@ -33,7 +33,7 @@ from sb3_nfq.fitting import (
     take,
     td_targets,
 )
-from sb3_nfq.memory import check_memory_fits, rows_per_chunk, stored_transitions
+from sb3_nfq.memory import make_memory, rows_per_chunk, stored_transitions
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.parameters import (
     LOSSES,
@@ -57,8 +57,6 @@ class NFQDivergenceError(FloatingPointError, ValueError):
     """
 
 
-#: Capacity of a growing memory when ``buffer_size`` is not given (SB3's replay buffer default).
-DEFAULT_GROWING_CAPACITY = 1_000_000
 #: ``learn()``'s default budget: the textbook's CartPole-v1 budget, in env steps.
 DEFAULT_TOTAL_TIMESTEPS = 300_000
 
@@ -282,47 +280,19 @@ class NFQ(OffPolicyAlgorithm):
         return TrainFreq(math.ceil(self.train_freq.frequency / self.n_envs), TrainFrequencyUnit.STEP)
 
     def _make_memory(self) -> ReplayBuffer:
-        """
-        Create the transition memory: SB3's replay buffer, read whole, never sampled with replacement.
-        It keeps ``terminated`` and time-limit truncation apart (``handle_timeout_termination``).
-
-        :return: An empty replay buffer for ``self.n_envs`` environments.
-        """
-        round_length = self._round_length()
+        """:return: the empty transition memory (see :func:`~sb3_nfq.memory.make_memory`)"""
         assert isinstance(self.train_freq, TrainFreq)
-        asked = f"train_freq=({self.train_freq.frequency}, {self.train_freq.unit.value!r})"
-        if round_length.unit == TrainFrequencyUnit.EPISODE:
-            if self.n_envs > 1:
-                raise ValueError(
-                    f"{asked} counts episodes, which needs a single environment; "
-                    f"got n_envs={self.n_envs}. Count transitions instead, e.g. train_freq=1024."
-                )
-            if self.buffer_size is None and self.memory == "fresh":
-                raise ValueError(
-                    f"{asked} counts episodes, so NFQ cannot know how many transitions a round "
-                    "holds: pass buffer_size, the most transitions one round may hold (e.g. buffer_size=100_000)."
-                )
-            capacity = self.buffer_size or DEFAULT_GROWING_CAPACITY
-        else:
-            round_transitions = round_length.frequency * self.n_envs
-            if self.buffer_size is not None and self.buffer_size < round_transitions:
-                raise ValueError(
-                    f"buffer_size={self.buffer_size} is smaller than one round of {round_transitions} transitions "
-                    f"({asked} with n_envs={self.n_envs}); use buffer_size=None or a larger value."
-                )
-            capacity = self.buffer_size or (round_transitions if self.memory == "fresh" else DEFAULT_GROWING_CAPACITY)
-        buffer_class: type[ReplayBuffer] = (
-            DictReplayBuffer if isinstance(self.observation_space, spaces.Dict) else ReplayBuffer
-        )
-        self.replay_buffer_class = buffer_class
-        check_memory_fits(self.observation_space, capacity, self.memory)
-        return buffer_class(
-            capacity,
+        self.replay_buffer_class = DictReplayBuffer if isinstance(self.observation_space, spaces.Dict) else ReplayBuffer
+        return make_memory(
+            self.replay_buffer_class,
             self.observation_space,
             self.action_space,
-            device=self.device,
-            n_envs=self.n_envs,
-            handle_timeout_termination=True,
+            self.train_freq,
+            self._round_length(),
+            self.n_envs,
+            self.buffer_size,
+            self.memory,
+            self.device,
         )
 
     def learn(
@@ -591,64 +561,37 @@ class NFQ(OffPolicyAlgorithm):
         :return: the model's action(s), always an ``np.ndarray`` (0-d for one observation), and the next state
             (unused)
         """
-        if isinstance(observation, tuple) and len(observation) == 2 and isinstance(observation[1], dict):
-            raise ValueError(
-                "You have passed a tuple to predict() instead of a NumPy array or a Dict: probably the (obs, info) "
-                "pair of a Gymnasium env's reset() or step(). Pass the observation alone: `obs, info = env.reset()` "
-                "then `model.predict(obs)` (an SB3 VecEnv's reset() returns the observations alone)."
-            )
+        reject_obs_info_pair(observation)
         if deterministic or self.exploration_rate <= 0:
             return self.policy.predict(observation, state, episode_start, deterministic=True)
         vectorized = self.policy.is_vectorized_observation(observation)
-        if isinstance(observation, dict):
-            n_obs = len(next(iter(observation.values()))) if vectorized else 1
-        else:
-            n_obs = len(observation) if vectorized else 1
-        explore, actions = self._coin_flips(n_obs)
-        if not explore.all():  # the network is only needed where some observation acts greedily
-            greedy_actions, _ = self.policy.predict(observation, state, episode_start, deterministic=True)
-            actions = np.where(explore, actions, np.reshape(greedy_actions, n_obs))
+        first = next(iter(observation.values())) if isinstance(observation, dict) else observation
+        actions = epsilon_greedy(
+            self.exploration_rate,
+            self.action_space,
+            len(first) if vectorized else 1,
+            lambda: self.policy.predict(observation, state, episode_start, deterministic=True)[0],
+        )
         return (actions if vectorized else np.asarray(actions[0])), state
-
-    def _coin_flips(self, n_obs: int) -> tuple[np.ndarray, np.ndarray]:
-        """
-        :param n_obs: number of observations acting at once
-        :return: which of them explore (probability ``exploration_rate`` each) and a uniform random action for each
-        """
-        assert isinstance(self.action_space, spaces.Discrete)
-        explore = np.random.rand(n_obs) < self.exploration_rate
-        return explore, np.random.randint(int(self.action_space.n), size=n_obs)
 
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
     ) -> tuple[np.ndarray, np.ndarray]:
         """
         The behaviour policy while collecting: epsilon-greedy for the ``n_envs`` current observations, drawn
-        exactly as ``predict(deterministic=False)`` draws them. ``collect_rollouts`` has already put the policy
-        in eval mode, so vector observations go straight to the Q-network (SB3's ``policy.predict`` would set
-        the mode and convert the observation again at every step).
+        exactly as ``predict(deterministic=False)`` draws them.
 
         :param learning_starts: unused (NFQ has no warm-up)
         :param action_noise: unused (discrete actions)
         :param n_envs: number of envs
         :return: the actions to take and to store (the same for discrete actions)
         """
-        explore, actions = self._coin_flips(n_envs)
-        if not explore.all():
-            observation = self._last_obs
-            assert observation is not None
-            if isinstance(observation, np.ndarray) and self._vector_observations():
-                with th.no_grad():
-                    q_values = self.q_net(th.as_tensor(observation, device=self.device))
-                greedy_actions = q_values.argmax(dim=1).cpu().numpy()
-            else:
-                greedy_actions, _ = self.policy.predict(observation, deterministic=True)
-            actions = np.where(explore, actions, np.reshape(greedy_actions, n_envs))
+        assert self._last_obs is not None
+        last_obs = self._last_obs
+        actions = epsilon_greedy(
+            self.exploration_rate, self.action_space, n_envs, lambda: greedy_actions(self.policy, last_obs)
+        )
         return actions, actions
-
-    def _vector_observations(self) -> bool:
-        """:return: whether observations are plain vectors (a non-image ``Box``) that need no conversion"""
-        return isinstance(self.observation_space, spaces.Box) and not is_image_space(self.observation_space)
 
     @classmethod
     def load(
@@ -674,7 +617,7 @@ class NFQ(OffPolicyAlgorithm):
         :param kwargs: extra arguments to change the model when loading
         :return: new model instance with loaded parameters
         """
-        _check_nfq_checkpoint(path, custom_objects)
+        check_nfq_checkpoint(path, custom_objects)
         return super().load(
             path,
             env=env,
@@ -690,21 +633,3 @@ class NFQ(OffPolicyAlgorithm):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "policy.optimizer"], []
-
-
-def _check_nfq_checkpoint(path: str | pathlib.Path | io.BufferedIOBase, custom_objects: dict[str, Any] | None) -> None:
-    """Raise a ``ValueError`` unless ``path`` holds a model saved by ``NFQ.save``."""
-    start = path.tell() if isinstance(path, io.BufferedIOBase) else None
-    try:
-        data, _, _ = load_from_zip_file(path, load_data=True, custom_objects=custom_objects, device="cpu")
-    except FileNotFoundError:
-        raise
-    except Exception as error:
-        raise ValueError(f"{path} is not an NFQ checkpoint (a zip saved by NFQ.save): {error}") from error
-    finally:
-        if start is not None:
-            path.seek(start)  # type: ignore[union-attr]
-    policy_class = (data or {}).get("policy_class")
-    if not (isinstance(policy_class, type) and issubclass(policy_class, NFQPolicy)):
-        found = getattr(policy_class, "__name__", policy_class)
-        raise ValueError(f"{path} is not an NFQ checkpoint: it holds a {found} policy, not an NFQ policy")

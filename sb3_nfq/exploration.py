@@ -1,0 +1,57 @@
+"""How NFQ acts: epsilon-greedy, with one coin flip per observation, and the greedy action of the Q-network."""
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.preprocessing import is_image_space
+
+from sb3_nfq.policies import NFQPolicy
+
+
+def reject_obs_info_pair(observation: Any) -> None:
+    """Raise a ``ValueError`` if ``observation`` is the ``(obs, info)`` pair of a Gymnasium ``reset()``/``step()``."""
+    if isinstance(observation, tuple) and len(observation) == 2 and isinstance(observation[1], dict):
+        raise ValueError(
+            "You have passed a tuple to predict() instead of a NumPy array or a Dict: probably the (obs, info) "
+            "pair of a Gymnasium env's reset() or step(). Pass the observation alone: `obs, info = env.reset()` "
+            "then `model.predict(obs)` (an SB3 VecEnv's reset() returns the observations alone)."
+        )
+
+
+def epsilon_greedy(
+    epsilon: float, action_space: spaces.Space, n_obs: int, greedy: Callable[[], np.ndarray]
+) -> np.ndarray:
+    """
+    :param epsilon: probability of a random action, for each observation independently
+    :param action_space: a ``Discrete`` action space
+    :param n_obs: number of observations acting at once
+    :param greedy: gives the greedy actions of the observations (called only if one of them acts greedily)
+    :return: one action per observation
+    """
+    assert isinstance(action_space, spaces.Discrete)
+    explore = np.random.rand(n_obs) < epsilon
+    actions = np.random.randint(int(action_space.n), size=n_obs)
+    if explore.all():  # the network is only needed where some observation acts greedily
+        return actions
+    return np.where(explore, actions, np.reshape(greedy(), n_obs))
+
+
+def greedy_actions(policy: NFQPolicy, observation: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
+    """
+    The greedy actions while collecting. ``collect_rollouts`` has already put the policy in eval mode, so plain
+    vector observations (a non-image ``Box``) go straight to the Q-network: SB3's ``policy.predict`` would set the
+    mode and convert the observation again at every step.
+
+    :param policy: the NFQ policy
+    :param observation: the current observations of the envs
+    :return: one action per env
+    """
+    space = policy.observation_space
+    if isinstance(observation, np.ndarray) and isinstance(space, spaces.Box) and not is_image_space(space):
+        with th.no_grad():
+            q_values = policy.q_net(th.as_tensor(observation, device=policy.device))
+        return q_values.argmax(dim=1).cpu().numpy()
+    return policy.predict(observation, deterministic=True)[0]

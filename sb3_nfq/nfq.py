@@ -36,6 +36,7 @@ from sb3_nfq.fitting import (
 from sb3_nfq.memory import make_memory, rows_per_chunk, stored_transitions
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.parameters import (
+    HYPERPARAMETERS,
     LOSSES,
     LossName,
     MemoryName,
@@ -64,77 +65,36 @@ DEFAULT_TOTAL_TIMESTEPS = 300_000
 class NFQ(OffPolicyAlgorithm):
     """
     Neural Fitted Q-Iteration (NFQ), as presented in chapter 8 of "Grokking Deep Reinforcement Learning"
-    (M. Riedmiller, "Neural Fitted Q Iteration", ECML 2005).
+    (M. Riedmiller, "Neural Fitted Q Iteration", ECML 2005). The defaults are the book's CartPole settings.
 
-    Each round collects ``train_freq`` fresh transitions with an epsilon-greedy policy, then runs
-    ``gradient_steps`` fitted iterations on them. A fitted iteration recomputes the off-policy TD target
-    ``r + gamma * max_a' Q(s', a')`` with the current network (detached: no gradient flows through it)
-    and takes one gradient step on the loss between ``Q(s, a)`` and the targets over the *whole* round
-    (every transition exactly once). Then the round's transitions are discarded. There is no target network.
-    Episodes that truly terminate bootstrap on 0; time-limit truncations bootstrap on ``Q(s', .)``.
-
-    Beyond the textbook (its settings stay the defaults):
-
-    - ``memory="growing"`` is the 2005 paper's variant: every transition is kept (up to ``buffer_size``)
-      and every fitted iteration covers the *whole* memory: one full-batch step (``batch_size=None``),
-      or one shuffled epoch of mini-batches of ``batch_size`` when the memory is larger than that.
-    - ``target_mode="fixed_per_iteration"`` is classic fitted Q-iteration: each fitted iteration computes
-      the targets of the whole memory once, then regresses on those fixed targets for ``fit_epochs`` epochs.
-      The textbook's ``"recompute_every_step"`` recomputes them before every gradient step.
-    - ``th.optim.Rprop`` (the paper's optimiser) needs full-batch gradients: combining it with mini-batches
-      is refused.
-    - :meth:`fit_offline` fits on a fixed :class:`~sb3_nfq.offline.TransitionDataset` without an env.
-
-    The book's names map onto SB3's as follows (the defaults are the book's CartPole settings):
-
-    ===============================  =====================================  =========
-    book                             NFQ parameter                          default
-    ===============================  =====================================  =========
-    E, transitions per round         ``train_freq``                         1024
-    K, fitting steps per round       ``gradient_steps``                     40
-    epsilon (constant)               ``exploration_initial_eps`` and        0.5
-                                     ``exploration_final_eps``
-    gamma                            ``gamma``                              1.0
-    RMSprop, lr 0.0005               ``policy_kwargs["optimizer_class"]``,  RMSprop,
-                                     ``learning_rate``                      5e-4
-    hidden layers 512 -> 128, ReLU   ``policy_kwargs["net_arch"]``,         [512, 128],
-                                     ``policy_kwargs["activation_fn"]``     ReLU
-    MSE loss                         ``loss``                               "mse"
-    ===============================  =====================================  =========
-
-    With ``n_envs`` environments, a round takes ``ceil(train_freq / n_envs)`` steps in each of them,
-    so it holds ``train_freq`` transitions rounded up to a multiple of ``n_envs``
-    (e.g. 1026 for ``train_freq=1024`` and 3 envs).
+    Each round collects ``train_freq`` fresh transitions with an epsilon-greedy policy, then runs ``gradient_steps``
+    fitted iterations on them. A fitted iteration recomputes the off-policy TD target ``r + gamma * max_a' Q(s', a')``
+    with the current network (detached: no gradient flows through it) and takes one gradient step on the loss
+    between ``Q(s, a)`` and the targets over the *whole* round. Then the round's transitions are discarded. There is
+    no target network. Terminations bootstrap on 0, time-limit truncations on ``Q(s', .)``. Beyond the book:
+    ``memory="growing"`` (the 2005 paper's memory of every transition), ``round_fraction``, ``target_mode``
+    (classic fitted Q-iteration), ``th.optim.Rprop`` (full batches only) and :meth:`fit_offline`.
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, or a policy class)
-    :param env: The environment to learn from (if registered in Gymnasium, can be str).
-        Its action space must be ``Discrete``. To fit a dataset without an env, use :meth:`for_dataset`.
-    :param learning_rate: The learning rate (the textbook's 5e-4), it can be a function
-        of the current progress remaining (from 1 to 0). For ``th.optim.Rprop`` it is the initial step size.
-    :param train_freq: Transitions collected per round (the book's E), counted over all envs.
-        Alternatively pass a tuple ``(n, "episode")`` to collect ``n`` whole episodes per round (one env only;
-        needs ``buffer_size``). ``(n, "step")`` is the same as ``n``.
-    :param gradient_steps: Fitted iterations per round (the book's K): each recomputes the targets
-        and takes one optimizer step on the whole round (or one epoch of mini-batches, see ``batch_size``).
-    :param batch_size: ``None`` (default, the textbook): each fitted iteration is one full-batch gradient step
-        per epoch. An integer splits each epoch into shuffled mini-batches of this size that cover every
-        transition once (with ``"recompute_every_step"``, each mini-batch's targets are recomputed before its step).
-    :param buffer_size: Most transitions the memory holds. ``None`` (default): exactly one round of
-        ``train_freq`` transitions for the fresh memory, 1,000,000 for the growing one.
-        Required when ``train_freq`` counts episodes with the fresh memory.
-    :param memory: ``"fresh"`` (textbook): fit on the round's transitions only, then discard them;
-        ``"growing"`` (2005 paper): keep every transition (the oldest are dropped past ``buffer_size``)
-        and fit on the whole memory every round.
-    :param round_fraction: With ``memory="growing"``: ``None`` (default): every round collects ``train_freq``
-        transitions. A number ``f``: a round collects ``max(train_freq, f * M)`` transitions, ``M`` being what the
-        memory holds when the round starts. Rounds lengthen as the memory grows, so each collected transition pays
-        for about ``gradient_steps / f`` transitions' worth of fitting whatever the memory's size, and the total
-        cost grows linearly with the steps (with a fixed ``train_freq``, with their square)
+    :param env: The environment to learn from (if registered in Gymnasium, can be str), with ``Discrete`` actions;
+        ``None`` with :meth:`for_dataset`
+    :param learning_rate: The learning rate, or a function of the progress remaining (from 1 to 0); Rprop's
+        initial step size
+    :param train_freq: Transitions collected per round (the book's E), over all envs (a round takes
+        ``ceil(train_freq / n_envs)`` steps in each), or ``(n, "episode")``: ``n`` whole episodes (one env only)
+    :param gradient_steps: Fitted iterations per round (the book's K), each covering the whole memory once
+    :param batch_size: ``None`` (textbook): one full-batch gradient step per epoch; an integer: shuffled mini-batches
+        of this size that cover every transition once
+    :param buffer_size: Most transitions the memory holds; ``None``: one round (fresh memory; needed when rounds
+        count episodes), 1,000,000 (growing)
+    :param memory: ``"fresh"`` (textbook): fit the round's transitions, then discard them; ``"growing"`` (2005
+        paper): keep every transition (the oldest go past ``buffer_size``) and fit the whole memory every round
+    :param round_fraction: With ``memory="growing"``, ``f``: a round collects ``max(train_freq, f * M)``
+        transitions, ``M`` being what the memory holds when it starts, so the fit per transition collected stays
+        about ``gradient_steps / f`` and the total cost grows linearly with the steps; ``None``: ``train_freq``
     :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
-        ``"fixed_per_iteration"`` (classic fitted Q-iteration): computed once per fitted iteration, then
-        ``fit_epochs`` epochs of regression on them.
-    :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration
-        (only with ``target_mode="fixed_per_iteration"``).
+        ``"fixed_per_iteration"`` (fitted Q-iteration): once per iteration, then ``fit_epochs`` epochs on them
+    :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from
@@ -196,23 +156,7 @@ class NFQ(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> None:
         reject_dqn_parameters(kwargs)
-        check_hyperparameters(
-            learning_rate=learning_rate,
-            train_freq=train_freq,
-            gradient_steps=gradient_steps,
-            batch_size=batch_size,
-            buffer_size=buffer_size,
-            memory=memory,
-            round_fraction=round_fraction,
-            target_mode=target_mode,
-            fit_epochs=fit_epochs,
-            gamma=gamma,
-            loss=loss,
-            exploration_fraction=exploration_fraction,
-            exploration_initial_eps=exploration_initial_eps,
-            exploration_final_eps=exploration_final_eps,
-            max_grad_norm=max_grad_norm,
-        )
+        check_hyperparameters(**{name: value for name, value in locals().items() if name in HYPERPARAMETERS})
         super().__init__(
             policy,
             env,  # type: ignore[arg-type]  # None: spaces come from load() or for_dataset()

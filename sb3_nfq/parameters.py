@@ -1,5 +1,6 @@
 """NFQ's parameters: their allowed values, and the checks that refuse anything else early, naming the parameter."""
 
+import inspect
 from typing import Any, Literal
 
 import torch as th
@@ -153,3 +154,7 @@ def check_full_batch_optimizer(
             f"Rprop needs full-batch gradients, but batch_size={batch_size} would split {what} into mini-batches. "
             "Use batch_size=None with Rprop, or another optimizer_class (RMSprop, Adam) for mini-batches."
         )
+
+
+#: The NFQ parameters :func:`check_hyperparameters` checks (NFQ passes it those of its arguments).
+HYPERPARAMETERS = frozenset(inspect.signature(check_hyperparameters).parameters)

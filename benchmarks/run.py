@@ -698,7 +698,20 @@ def _run_ray(jobs: Sequence[Job], address: str, workers: int, on_result: Callabl
     return failures
 
 
-def run_jobs(jobs: Sequence[Job], results: Path, workers: int, ray_address: str | None = None) -> tuple[int, int, int]:
+def done_keys(results: Path, jobs: Sequence[Job], rerun: bool = False) -> set[tuple[str, str, int, int, str]]:
+    """
+    :param results: the results file
+    :param jobs: the jobs about to run
+    :param rerun: count only the records of the jobs' own command line (see :func:`run_jobs`)
+    :return: the keys of the jobs the file already holds
+    """
+    commands = {job.command for job in jobs}
+    return {result_key(record) for record in read_results(results) if not rerun or record["command"] in commands}
+
+
+def run_jobs(
+    jobs: Sequence[Job], results: Path, workers: int, ray_address: str | None = None, rerun: bool = False
+) -> tuple[int, int, int]:
     """
     Run the jobs not yet in ``results``, appending one line per finished job.
 
@@ -706,9 +719,11 @@ def run_jobs(jobs: Sequence[Job], results: Path, workers: int, ray_address: str 
     :param results: the results file (JSON lines)
     :param workers: local worker processes (0: run in this process); clamped to the number of cores
     :param ray_address: run as Ray tasks on this cluster (``local``, ``auto`` or an address) instead
+    :param rerun: run the jobs again even where the file has them, skipping only those this same command line
+        (the jobs' ``command``) has already recorded: for runs side by side with new ones
     :return: (jobs run, jobs skipped as already done, jobs failed)
     """
-    done = {result_key(record) for record in read_results(results)}
+    done = done_keys(results, jobs, rerun)
     todo = [job for job in jobs if job.key not in done]
     skipped = len(jobs) - len(todo)
     cores = usable_cores()
@@ -816,6 +831,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="JSON-lines results file (default: runs.jsonl; book_protocol.jsonl with --protocol book)",
     )
     parser.add_argument("--ray-address", help="run the jobs as Ray tasks: 'local', 'auto' or a cluster address")
+    parser.add_argument(
+        "--rerun",
+        action="store_true",
+        help="run jobs again even if the results file has them (only this exact command's own are skipped): to "
+        "measure a baseline side by side with new runs",
+    )
     parser.add_argument("--dry-run", action="store_true", help="list the jobs to run and exit")
     args = parser.parse_args(argv)
     if args.results is None:
@@ -834,13 +855,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         protocol=args.protocol,
     )
     if args.dry_run:
-        done = {result_key(record) for record in read_results(args.results)}
+        done = done_keys(args.results, jobs, args.rerun)
         for job in jobs:
             state = "done" if job.key in done else "todo"
             print(f"{state} {job.algo} {job.env_id} seed={job.seed} budget={job.budget} config={job.config_hash}")
         return 0
     print(f"machine: {machine_line()}; torch threads per job: 1")
-    _, _, failures = run_jobs(jobs, args.results, args.workers, args.ray_address)
+    _, _, failures = run_jobs(jobs, args.results, args.workers, args.ray_address, args.rerun)
     return 1 if failures else 0
 
 

@@ -243,6 +243,20 @@ def test_runner_skips_jobs_already_done(results_file: Path, capsys: pytest.Captu
     assert "6 already in" in capsys.readouterr().out
 
 
+def test_rerun_runs_jobs_again_beside_new_ones_and_resumes_its_own(
+    results_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "runs.jsonl"
+    path.write_text(results_file.read_text())
+    args = ["--algos", "nfq-book", *RUNNER_ARGS, "--results", str(path), "--rerun"]
+    assert run.main(args) == 0
+    assert "2 jobs: 0 already in" in capsys.readouterr().out
+    again = [record for record in _lines(path) if record["algo"] == "nfq-book"]
+    assert len(again) == 4 and len({record["command"] for record in again}) == 2
+    assert run.main(args) == 0  # the same command resumes: its own runs are done
+    assert "2 jobs: 2 already in" in capsys.readouterr().out and len(_lines(path)) == len(again) + 4
+
+
 def test_training_envs_have_no_render_mode_like_the_reference() -> None:
     """SB3 renders LunarLander's exhaust particles for an env id; the runner's training envs must not pay for it."""
     import gymnasium as gym
@@ -461,6 +475,12 @@ def test_targets_are_read_from_data_and_bad_ones_are_refused(results_file: Path,
         "steps_ratio",
         "solved_envs",
         "final_score",
+        "steps_ratio",
+        "final_score",
+        "seconds_ratio",
+        "solved_envs",
+        "seconds_ratio",
+        "flat_fit_cost",
     ]
     path = tmp_path / "targets.yml"
     path.write_text("- {kind: steps_ratio, algo: nfq-book, baseline: dqn-zoo, env: CartPole-v1, high: 2.5}\n")

@@ -519,6 +519,9 @@ def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
 def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baseline: str) -> tuple[Cell, Cell] | None:
     """
     :param records: result lines
+    :param env: env id
+    :param algo: the config measured
+    :param baseline: the config it is compared with
     :return: the runs of ``algo`` and ``baseline`` on ``env`` trained to the budget by one runner command (so on the
         same machine in the same session), the command with the most seeds of both; ``None`` if no command ran both
     """
@@ -540,6 +543,11 @@ def seconds_ratio_target(
     records: Sequence[dict[str, Any]], envs: Sequence[str], algo: str, baseline: str, high: float
 ) -> tuple[str, str]:
     """
+    :param records: result lines
+    :param envs: env ids
+    :param algo: the config measured
+    :param baseline: the config it is compared with
+    :param high: the largest ratio that meets the target
     :return: (verdict, text) for "median training seconds to the budget of ``algo`` / of ``baseline`` <= ``high`` on
         every env of ``envs``", each pair run side by side (see :func:`side_by_side`)
     """
@@ -561,6 +569,8 @@ def seconds_ratio_target(
 def flat_fit_cost_target(scaling: dict[str, Any] | None, mode: str, tolerance: float) -> tuple[str, str]:
     """
     :param scaling: the scaling run (``benchmarks.scaling``'s JSON), if any
+    :param mode: a mode of that run
+    :param tolerance: the largest relative departure from the mean that meets the target
     :return: (verdict, text) for "the mode's fit seconds per 1,000 steps stay within ``tolerance`` of their mean"
     """
     if scaling is None or mode not in scaling["bins"]:

@@ -350,9 +350,9 @@ def summary_cell(cells_by_env: dict[str, list[Cell]], env: str, algo: str) -> Ce
 def summary_table(cells_by_env: dict[str, list[Cell]]) -> str:
     """:return: the README's short results table: one row per env and config (see :func:`summary_cell`)"""
     lines = [
-        "| env | config | seeds | trained | solved | steps to solve: median | final score ≥ threshold "
-        "| train s: median |",
-        "|---|---|---|---|---|---|---|---|",
+        "| env | config | seeds | evaluated every | trained | solved | steps to solve: median "
+        "| final score ≥ threshold | train s: median |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for env in cells_by_env:
         for algo in configs.algorithm_names():
@@ -364,8 +364,8 @@ def summary_table(cells_by_env: dict[str, list[Cell]]) -> str:
             final = int((cell.final_scores() >= cell.runs[0]["threshold"]).sum())
             trained = "to the solve" if cell.stop_at_solve else f"to {cell.budget:,} steps"
             lines.append(
-                f"| {env} | {algo} | {cell.n} | {trained} | {solved}/{cell.n} | {_steps(median, bound)} "
-                f"| {final}/{cell.n} | {float(np.median(cell.train_seconds())):.0f} |"
+                f"| {env} | {algo} | {cell.n} | {cell.eval_every:,} | {trained} | {solved}/{cell.n} "
+                f"| {_steps(median, bound)} | {final}/{cell.n} | {float(np.median(cell.train_seconds())):.0f} |"
             )
     return "\n".join(lines)
 

@@ -1,7 +1,8 @@
 """sb3-nfq: Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 algorithm."""
 
 from sb3_nfq.callbacks import BookCriterion, StopTrainingOnBookCriterion
-from sb3_nfq.nfq import NFQ, NFQDivergenceError
+from sb3_nfq.fitting import NFQDivergenceError
+from sb3_nfq.nfq import NFQ
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy
 

@@ -39,6 +39,28 @@ def epsilon_greedy(
     return np.where(explore, actions, np.reshape(greedy(), n_obs))
 
 
+def epsilon_greedy_predict(
+    policy: NFQPolicy, observation: np.ndarray | dict[str, np.ndarray], epsilon: float
+) -> np.ndarray:
+    """
+    ``predict(deterministic=False)``: epsilon-greedy, with an independent coin flip for each observation of a batch.
+
+    :param policy: the NFQ policy
+    :param observation: one observation or a batch of them
+    :param epsilon: probability of a random action
+    :return: the action(s): one per observation of a batch, or a 0-d array for one observation
+    """
+    vectorized = policy.is_vectorized_observation(observation)
+    first = next(iter(observation.values())) if isinstance(observation, dict) else observation
+    actions = epsilon_greedy(
+        epsilon,
+        policy.action_space,
+        len(first) if vectorized else 1,
+        lambda: policy.predict(observation, deterministic=True)[0],
+    )
+    return actions if vectorized else np.asarray(actions[0])
+
+
 def greedy_actions(policy: NFQPolicy, observation: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
     """
     The greedy actions while collecting. ``collect_rollouts`` has already put the policy in eval mode, so plain

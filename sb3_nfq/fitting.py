@@ -4,6 +4,7 @@ epochs, taking rows of a batch.
 """
 
 import contextlib
+import math
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -11,6 +12,31 @@ import torch as th
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_nfq.memory import rows_per_chunk
+
+
+class NFQDivergenceError(FloatingPointError, ValueError):
+    """
+    The fitting loss became NaN or infinite. A ``FloatingPointError``, and also a ``ValueError`` so that
+    RL Zoo / Optuna tuning prunes the diverging trial instead of stopping the whole study.
+    """
+
+
+def check_loss_is_finite(loss_value: float, round_number: int, iteration: int, iterations: int, timesteps: int) -> None:
+    """
+    Raise :class:`NFQDivergenceError` if the loss of a gradient step is NaN or infinite, before the step is applied.
+
+    :param loss_value: the step's loss
+    :param round_number: the round being fitted (from 1)
+    :param iteration: the fitted iteration (from 1)
+    :param iterations: the fitted iterations of the round
+    :param timesteps: env steps taken so far
+    """
+    if not math.isfinite(loss_value):
+        raise NFQDivergenceError(
+            f"NFQ loss became {loss_value} in round {round_number} (fitted iteration {iteration}/{iterations}, "
+            f"after {timesteps} env steps); training stopped before that step was applied. Check the rewards and "
+            "observations for NaN/inf, or lower learning_rate, use loss='huber' or set max_grad_norm."
+        )
 
 
 @contextlib.contextmanager

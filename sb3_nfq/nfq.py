@@ -24,8 +24,9 @@ from stable_baselines3.common.type_aliases import (
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
 from sb3_nfq.checkpoints import check_nfq_checkpoint
-from sb3_nfq.exploration import epsilon_greedy, greedy_actions, reject_obs_info_pair
+from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
+    check_loss_is_finite,
     has_mode_dependent_layers,
     loss_and_gradient,
     minibatch_indices,
@@ -49,13 +50,6 @@ from sb3_nfq.parameters import (
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
 
 SelfNFQ = TypeVar("SelfNFQ", bound="NFQ")
-
-
-class NFQDivergenceError(FloatingPointError, ValueError):
-    """
-    The fitting loss became NaN or infinite. A ``FloatingPointError``, and also a ``ValueError`` so that
-    RL Zoo / Optuna tuning prunes the diverging trial instead of stopping the whole study.
-    """
 
 
 #: ``learn()``'s default budget: the textbook's CartPole-v1 budget, in env steps.
@@ -161,7 +155,7 @@ class NFQ(OffPolicyAlgorithm):
             policy,
             env,  # type: ignore[arg-type]  # None: spaces come from load() or for_dataset()
             learning_rate,
-            buffer_size=buffer_size,  # type: ignore[arg-type]  # None: one round, resolved in _make_memory
+            buffer_size=buffer_size,  # type: ignore[arg-type]  # None: one round, resolved in make_memory
             learning_starts=0,
             batch_size=batch_size,  # type: ignore[arg-type]  # None: full batch
             gamma=gamma,
@@ -203,11 +197,31 @@ class NFQ(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
         self._convert_train_freq()
+        round_length = self._round_length()
         if self.replay_buffer is None:
-            self.replay_buffer = self._make_memory()
+            dict_observations = isinstance(self.observation_space, spaces.Dict)
+            self.replay_buffer_class = DictReplayBuffer if dict_observations else ReplayBuffer
+            self.replay_buffer = make_memory(
+                self.replay_buffer_class,
+                self.observation_space,
+                self.action_space,
+                self.train_freq,
+                round_length,
+                self.n_envs,
+                self.buffer_size,
+                self.memory,
+                self.device,
+            )
         super()._setup_model()
         self.q_net = self.policy.q_net
-        self._check_optimizer_gets_full_batches()
+        # Rprop needs a round's fit in full batches: a fresh memory of step rounds bounds it, anything else does not.
+        bounded = self.memory == "fresh" and round_length.unit == TrainFrequencyUnit.STEP
+        check_full_batch_optimizer(
+            self.policy.optimizer,
+            self.batch_size,
+            round_length.frequency * self.n_envs if bounded else None,
+            f"a round's fit (memory={self.memory!r})",
+        )
         self.exploration_schedule = LinearSchedule(
             self.exploration_initial_eps,
             self.exploration_final_eps,
@@ -222,22 +236,6 @@ class NFQ(OffPolicyAlgorithm):
         if self.train_freq.unit == TrainFrequencyUnit.EPISODE:
             return self.train_freq
         return TrainFreq(math.ceil(self.train_freq.frequency / self.n_envs), TrainFrequencyUnit.STEP)
-
-    def _make_memory(self) -> ReplayBuffer:
-        """:return: the empty transition memory (see :func:`~sb3_nfq.memory.make_memory`)"""
-        assert isinstance(self.train_freq, TrainFreq)
-        self.replay_buffer_class = DictReplayBuffer if isinstance(self.observation_space, spaces.Dict) else ReplayBuffer
-        return make_memory(
-            self.replay_buffer_class,
-            self.observation_space,
-            self.action_space,
-            self.train_freq,
-            self._round_length(),
-            self.n_envs,
-            self.buffer_size,
-            self.memory,
-            self.device,
-        )
 
     def learn(
         self: SelfNFQ,
@@ -403,13 +401,7 @@ class NFQ(OffPolicyAlgorithm):
                     loss_value, q_values, targets = loss_and_gradient(
                         self.q_net, LOSSES[self.loss], self.gamma, data, known, shared_states
                     )
-                    if not math.isfinite(loss_value):
-                        raise NFQDivergenceError(
-                            f"NFQ loss became {loss_value} in round {self._n_rounds} (fitted iteration "
-                            f"{iteration + 1}/{gradient_steps}, after {self.num_timesteps} env steps); training "
-                            "stopped before that step was applied. Check the rewards and observations for NaN/inf, "
-                            "or lower learning_rate, use loss='huber' or set max_grad_norm."
-                        )
+                    check_loss_is_finite(loss_value, self._n_rounds, iteration + 1, gradient_steps, self.num_timesteps)
                     losses.append(loss_value)
                     if self.max_grad_norm is not None:
                         th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
@@ -422,17 +414,6 @@ class NFQ(OffPolicyAlgorithm):
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
-
-    def _check_optimizer_gets_full_batches(self) -> None:
-        """Refuse a ``batch_size`` that would split a round's fit into mini-batches for Rprop."""
-        round_length = self._round_length()
-        bounded = self.memory == "fresh" and round_length.unit == TrainFrequencyUnit.STEP
-        check_full_batch_optimizer(
-            self.policy.optimizer,
-            self.batch_size,
-            round_length.frequency * self.n_envs if bounded else None,
-            f"a round's fit (memory={self.memory!r})",
-        )
 
     @classmethod
     def for_dataset(
@@ -508,15 +489,7 @@ class NFQ(OffPolicyAlgorithm):
         reject_obs_info_pair(observation)
         if deterministic or self.exploration_rate <= 0:
             return self.policy.predict(observation, state, episode_start, deterministic=True)
-        vectorized = self.policy.is_vectorized_observation(observation)
-        first = next(iter(observation.values())) if isinstance(observation, dict) else observation
-        actions = epsilon_greedy(
-            self.exploration_rate,
-            self.action_space,
-            len(first) if vectorized else 1,
-            lambda: self.policy.predict(observation, state, episode_start, deterministic=True)[0],
-        )
-        return (actions if vectorized else np.asarray(actions[0])), state
+        return epsilon_greedy_predict(self.policy, observation, self.exploration_rate), state
 
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1

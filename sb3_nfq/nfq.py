@@ -455,7 +455,7 @@ class NFQ(OffPolicyAlgorithm):
         )
         if not hasattr(self, "_logger"):
             self.set_logger(configure_logger(self.verbose, self.tensorboard_log, "NFQ_offline"))
-        self._fit(stored_transitions(dataset.to_replay_buffer(self.device)), 1, iterations, self.batch_size)
+        self._fit(dataset.samples(self.device), 1, iterations, self.batch_size)
         self.logger.dump(step=self.num_timesteps)
         return self
 

@@ -9,6 +9,8 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.save_util import load_from_pkl
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.utils import get_device
 
 from sb3_nfq.memory import flatten
 
@@ -187,6 +189,26 @@ class TransitionDataset:
             )
         if not isinstance(action_space, spaces.Discrete) or action_space.n != self.action_space.n:
             raise ValueError(f"the dataset's actions are {self.action_space}, the model expects {action_space}")
+
+    def samples(self, device: th.device | str = "auto") -> ReplayBufferSamples:
+        """
+        :param device: device of the tensors
+        :return: the transitions as the batch NFQ fits, one row each in order, with the dtypes of SB3's replay
+            buffer; ``dones`` is 1 only for true terminations (time-limit truncations bootstrap)
+        """
+        device = get_device(device)
+        observation_dtype = self.observation_space.dtype
+
+        def column(array: np.ndarray, dtype: Any = np.float32) -> th.Tensor:
+            return th.as_tensor(np.asarray(array, dtype=dtype), device=device)
+
+        return ReplayBufferSamples(
+            observations=column(self.observations, observation_dtype),
+            actions=column(self.actions.reshape(-1, 1), self.action_space.dtype),
+            next_observations=column(self.next_observations, observation_dtype),
+            dones=column(self.terminated.reshape(-1, 1)),
+            rewards=column(self.rewards.reshape(-1, 1)),
+        )
 
     def to_replay_buffer(self, device: th.device | str = "auto") -> ReplayBuffer:
         """

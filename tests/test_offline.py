@@ -12,6 +12,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from benchmarks.offline_random_cartpole import random_cartpole_arrays
 from sb3_nfq import NFQ, TransitionDataset
+from sb3_nfq.memory import stored_transitions
 from tests.conftest import record_fitting
 
 
@@ -65,12 +66,21 @@ def test_fit_offline_uses_the_datasets_episode_ends() -> None:
     arrays = random_cartpole_arrays(30, seed=1, max_episode_steps=15)
     dataset = dataset_from(arrays)
     assert dataset.truncated.any() and dataset.terminated.any()
-    model = NFQ("MlpPolicy", "CartPole-v1")
-    memory = dataset.to_replay_buffer()
-    model.replay_buffer = memory
-    data = model._stored_transitions()
+    data = dataset.samples()
     # only true terminations bootstrap on 0
     np.testing.assert_array_equal(data.dones.flatten().numpy().astype(bool), arrays["term"])
+
+
+def test_a_datasets_samples_are_what_its_replay_buffer_holds() -> None:
+    dataset = dataset_from(random_cartpole_arrays(30, seed=2, max_episode_steps=15))
+    from_buffer = stored_transitions(dataset.to_replay_buffer("cpu"))
+    for name, tensor in dataset.samples("cpu")._asdict().items():
+        expected = getattr(from_buffer, name)
+        if expected is None:  # SB3's n-step discounts, which neither holds
+            assert tensor is None, name
+            continue
+        assert tensor.dtype == expected.dtype and tensor.shape == expected.shape, name
+        np.testing.assert_array_equal(tensor.numpy(), expected.numpy())
 
 
 def test_fit_offline_from_a_saved_sb3_replay_buffer(tmp_path: Path) -> None:

@@ -258,8 +258,9 @@ def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: 
 
 
 def test_enjoy_runs_the_trained_agent(trained_run: Path) -> None:
-    # No --algo and no -f: the launcher's defaults find the run under ./logs/nfq
-    output = _check(_zoo("enjoy", "--env", ENV_ID, "--no-render", "-n", "300", "--deterministic", cwd=trained_run))
+    # No --algo and no -f: the launcher's defaults find the run under ./logs/nfq. More steps than CartPole's time
+    # limit (500), so that an episode ends and its return is printed however well the agent balances.
+    output = _check(_zoo("enjoy", "--env", ENV_ID, "--no-render", "-n", "600", "--deterministic", cwd=trained_run))
     assert f"Loading logs/{ALGO_NAME}/{ENV_ID}_1/{ENV_ID}.zip" in output
     assert "Mean reward:" in output
 

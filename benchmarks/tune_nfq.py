@@ -8,7 +8,8 @@ the runner then measures on the benchmark seeds (0-4), which tuning never sees.
         [--budget N --eval-episodes N: smoke tests only]
 
 The candidates are data: ``benchmarks/tuning_candidates.yml`` (per env, a name -> a shipped config's entry plus the
-keys that differ; the file says why each was tried).
+keys that differ; its ``every-env`` section: candidates for one config, tried on every env; the file says why each
+was tried).
 
 Protocol: each (candidate, env, seed) is one job of ``benchmarks/run.py`` (same greedy evaluations of 100 episodes
 every ``eval_every`` steps, on CartPole every 256 (see ``TUNING_EVAL_EVERY``), same threshold, one torch thread, one
@@ -40,6 +41,8 @@ from sb3_nfq.configs import read_entry
 DEFAULT_RESULTS = REPO_ROOT / "benchmarks" / "results" / "tuning_per_env.jsonl"
 #: The candidates, as data.
 CANDIDATES_FILE = REPO_ROOT / "benchmarks" / "tuning_candidates.yml"
+#: The candidates file's section of candidates tried on every env of the benchmark, unchanged (one config for all).
+EVERY_ENV = "every-env"
 #: Seeds for tuning; the benchmark's are 0-4.
 DEFAULT_TUNING_SEEDS = "100-101"
 #: Prefix of a candidate's ``algo`` in the results file.
@@ -55,12 +58,18 @@ def read_candidates(path: Path = CANDIDATES_FILE) -> dict[str, dict[str, dict[st
     """
     :param path: the candidates file
     :return: env id -> candidate name -> its entry (``n_timesteps`` included): its ``base`` config's entry for that
-        env, updated with the keys the candidate sets
+        env, updated with the keys the candidate sets. The candidates of the file's :data:`EVERY_ENV` section are
+        candidates of each of the benchmark's envs (``configs.ENVS``), as the same keys on each env's entry.
     """
     table = yaml.safe_load(path.read_text())
+    every_env = table.pop(EVERY_ENV, None) or {}
+    written_per_env = {env_id: dict(table.get(env_id) or {}) for env_id in [*table, *configs.ENVS]}
     candidates: dict[str, dict[str, dict[str, Any]]] = {}
-    for env_id, named in table.items():
-        for name, written in named.items():
+    for env_id, named in written_per_env.items():
+        clash = sorted(set(named) & set(every_env))
+        if clash:
+            raise ValueError(f"{path}: candidates {clash} are both in {EVERY_ENV!r} and under {env_id}")
+        for name, written in {**named, **every_env}.items():
             overrides = dict(written)
             if "base" not in overrides:
                 raise ValueError(f"{path}: candidate {name!r} of {env_id} names no 'base' config")

@@ -586,6 +586,19 @@ def test_a_candidate_is_its_base_config_with_the_keys_it_sets(tmp_path: Path) ->
         tune_nfq.read_candidates(path)
 
 
+def test_an_every_env_candidate_is_a_candidate_of_each_benchmark_env(tmp_path: Path) -> None:
+    path = tmp_path / "candidates.yml"
+    path.write_text("Acrobot-v1:\n  book: {base: nfq-book}\nevery-env:\n  capped-0.9: {base: nfq-capped, gamma: 0.9}\n")
+    candidates = tune_nfq.read_candidates(path)
+    assert sorted(candidates) == sorted(configs.ENVS)
+    for env_id in configs.ENVS:
+        assert candidates[env_id]["capped-0.9"] == {**read_entry("nfq-capped", env_id), "gamma": 0.9}
+    assert sorted(candidates["Acrobot-v1"]) == ["book", "capped-0.9"]
+    path.write_text("Acrobot-v1:\n  twice: {base: nfq-book}\nevery-env:\n  twice: {base: nfq-capped}\n")
+    with pytest.raises(ValueError, match=r"candidates \['twice'\] are both in 'every-env' and under Acrobot-v1"):
+        tune_nfq.read_candidates(path)
+
+
 def test_tuning_sweep_runs_ranks_and_resumes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     th.set_num_threads(1)
     results = tmp_path / "tuning.jsonl"

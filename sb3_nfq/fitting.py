@@ -147,6 +147,26 @@ def states_and_successors(batch: ReplayBufferSamples, n_envs: int) -> tuple[th.T
     return next_observations[new_rows], next_rows
 
 
+def shared_successor_states(
+    q_net: th.nn.Module, batch: ReplayBufferSamples, n_envs: int, batch_size: int | None
+) -> tuple[th.Tensor, th.Tensor] | None:
+    """
+    :param q_net: the Q-network
+    :param batch: the whole memory
+    :param n_envs: how many envs the rows interleave
+    :param batch_size: NFQ's ``batch_size``
+    :return: :func:`states_and_successors` where ``Q(s', .)`` can be read off the ``Q(s, .)`` pass: full-batch steps
+        whose pass covers the whole memory at once, with a network that computes the same in training and eval mode;
+        else ``None``
+    """
+    n_transitions = len(batch.rewards)
+    full_batch = batch_size is None or batch_size >= n_transitions
+    one_pass = n_transitions <= rows_per_chunk(batch.observations)
+    if full_batch and one_pass and not has_mode_dependent_layers(q_net):
+        return states_and_successors(batch, n_envs)
+    return None
+
+
 def loss_and_gradient(
     q_net: th.nn.Module,
     loss_fn: Callable[..., th.Tensor],

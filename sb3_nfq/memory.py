@@ -11,9 +11,11 @@ from typing import Any
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer
+from stable_baselines3.common.buffers import BaseBuffer, DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.type_aliases import ReplayBufferSamples, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_nfq.rounds import round_length
 
 #: Most bytes of float32 network input in one forward pass over the memory (target passes, and the chunks a
 #: full-batch gradient is accumulated over): a whole CartPole memory of millions of rows, a few hundred 84x84x4 frames.
@@ -81,11 +83,9 @@ DEFAULT_GROWING_CAPACITY = 1_000_000
 
 
 def make_memory(
-    buffer_class: type[ReplayBuffer],
     observation_space: spaces.Space,
     action_space: spaces.Space,
-    train_freq: TrainFreq,
-    round_length: TrainFreq,
+    train_freq: TrainFreq | int | tuple[int, str],
     n_envs: int,
     buffer_size: int | None,
     memory: str,
@@ -95,19 +95,19 @@ def make_memory(
     Create the transition memory: SB3's replay buffer, read whole, never sampled with replacement. It keeps
     ``terminated`` and time-limit truncation apart (``handle_timeout_termination``).
 
-    :param buffer_class: ``ReplayBuffer``, or ``DictReplayBuffer`` for ``Dict`` observations
     :param observation_space: the observations stored
     :param action_space: the actions stored
-    :param train_freq: the round length asked for (named in errors)
-    :param round_length: a round, in ``env.step()`` calls or episodes
+    :param train_freq: NFQ's ``train_freq`` (a ``TrainFreq``, once the model has set up)
     :param n_envs: number of envs
     :param buffer_size: NFQ's ``buffer_size``
     :param memory: ``"fresh"`` or ``"growing"``
     :param device: where the buffer hands its samples
-    :return: an empty replay buffer for ``n_envs`` environments
+    :return: an empty replay buffer (a ``DictReplayBuffer`` for ``Dict`` observations) for ``n_envs`` environments
     """
+    length = round_length(train_freq, n_envs)
+    assert isinstance(train_freq, TrainFreq)
     asked = f"train_freq=({train_freq.frequency}, {train_freq.unit.value!r})"
-    if round_length.unit == TrainFrequencyUnit.EPISODE:
+    if length.unit == TrainFrequencyUnit.EPISODE:
         if n_envs > 1:
             raise ValueError(
                 f"{asked} counts episodes, which needs a single environment; "
@@ -120,7 +120,7 @@ def make_memory(
             )
         capacity = buffer_size or DEFAULT_GROWING_CAPACITY
     else:
-        round_transitions = round_length.frequency * n_envs
+        round_transitions = length.frequency * n_envs
         if buffer_size is not None and buffer_size < round_transitions:
             raise ValueError(
                 f"buffer_size={buffer_size} is smaller than one round of {round_transitions} transitions "
@@ -128,6 +128,7 @@ def make_memory(
             )
         capacity = buffer_size or (round_transitions if memory == "fresh" else DEFAULT_GROWING_CAPACITY)
     check_memory_fits(observation_space, capacity, memory)
+    buffer_class: type[ReplayBuffer] = DictReplayBuffer if isinstance(observation_space, spaces.Dict) else ReplayBuffer
     return buffer_class(
         capacity, observation_space, action_space, device=device, n_envs=n_envs, handle_timeout_termination=True
     )

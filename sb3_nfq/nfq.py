@@ -7,9 +7,7 @@ from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
-from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
@@ -27,14 +25,13 @@ from sb3_nfq.checkpoints import check_nfq_checkpoint
 from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
     check_loss_is_finite,
-    has_mode_dependent_layers,
     loss_and_gradient,
     minibatch_indices,
-    states_and_successors,
+    shared_successor_states,
     take,
     td_targets,
 )
-from sb3_nfq.memory import make_memory, rows_per_chunk, stored_transitions
+from sb3_nfq.memory import make_memory, stored_transitions
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.parameters import (
     HYPERPARAMETERS,
@@ -48,6 +45,13 @@ from sb3_nfq.parameters import (
     reject_dqn_parameters,
 )
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
+from sb3_nfq.rounds import (
+    check_round_fits,
+    fresh_round_transitions,
+    round_length,
+    round_size,
+    store_interrupted_step,
+)
 
 SelfNFQ = TypeVar("SelfNFQ", bound="NFQ")
 
@@ -58,16 +62,11 @@ DEFAULT_TOTAL_TIMESTEPS = 300_000
 
 class NFQ(OffPolicyAlgorithm):
     """
-    Neural Fitted Q-Iteration (NFQ), as presented in chapter 8 of "Grokking Deep Reinforcement Learning"
-    (M. Riedmiller, "Neural Fitted Q Iteration", ECML 2005). The defaults are the book's CartPole settings.
+    Neural Fitted Q-Iteration (NFQ)
 
-    Each round collects ``train_freq`` fresh transitions with an epsilon-greedy policy, then runs ``gradient_steps``
-    fitted iterations on them. A fitted iteration recomputes the off-policy TD target ``r + gamma * max_a' Q(s', a')``
-    with the current network (detached: no gradient flows through it) and takes one gradient step on the loss
-    between ``Q(s, a)`` and the targets over the *whole* round. Then the round's transitions are discarded. There is
-    no target network. Terminations bootstrap on 0, time-limit truncations on ``Q(s', .)``. Beyond the book:
-    ``memory="growing"`` (the 2005 paper's memory of every transition), ``round_fraction``, ``target_mode``
-    (classic fitted Q-iteration), ``th.optim.Rprop`` (full batches only) and :meth:`fit_offline`.
+    Paper: M. Riedmiller, "Neural Fitted Q Iteration", ECML 2005. The defaults are the CartPole settings of chapter 8
+    of "Grokking Deep Reinforcement Learning": rounds of ``train_freq`` fresh epsilon-greedy transitions, each fitted
+    by ``gradient_steps`` full-batch regressions on detached TD targets (no target network), then discarded.
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, or a policy class)
     :param env: The environment to learn from (if registered in Gymnasium, can be str), with ``Discrete`` actions;
@@ -188,7 +187,8 @@ class NFQ(OffPolicyAlgorithm):
         # cut short by a callback or by the end of learn() is completed by the next learn(), then fitted.
         self._round_steps = 0
         self._round_episodes = 0
-        # With round_fraction: the current round's length in env.step() calls, fixed when it starts (0: not yet).
+        # The current round's length (env.step() calls; episodes, for episode rounds), fixed when it starts (0: not
+        # yet): with round_fraction, it follows what the memory holds then.
         self._round_target = 0
 
         if _init_setup_model:
@@ -197,45 +197,29 @@ class NFQ(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
         self._convert_train_freq()
-        round_length = self._round_length()
         if self.replay_buffer is None:
-            dict_observations = isinstance(self.observation_space, spaces.Dict)
-            self.replay_buffer_class = DictReplayBuffer if dict_observations else ReplayBuffer
             self.replay_buffer = make_memory(
-                self.replay_buffer_class,
                 self.observation_space,
                 self.action_space,
                 self.train_freq,
-                round_length,
                 self.n_envs,
                 self.buffer_size,
                 self.memory,
                 self.device,
             )
+            self.replay_buffer_class = type(self.replay_buffer)
         super()._setup_model()
         self.q_net = self.policy.q_net
-        # Rprop needs a round's fit in full batches: a fresh memory of step rounds bounds it, anything else does not.
-        bounded = self.memory == "fresh" and round_length.unit == TrainFrequencyUnit.STEP
+        # Rprop needs a round's fit in full batches, which only a fresh memory of step rounds bounds.
+        fit_size = fresh_round_transitions(self.train_freq, self.n_envs, self.memory)
         check_full_batch_optimizer(
-            self.policy.optimizer,
-            self.batch_size,
-            round_length.frequency * self.n_envs if bounded else None,
-            f"a round's fit (memory={self.memory!r})",
+            self.policy.optimizer, self.batch_size, fit_size, f"a round's fit (memory={self.memory!r})"
         )
         self.exploration_schedule = LinearSchedule(
             self.exploration_initial_eps,
             self.exploration_final_eps,
             self.exploration_fraction,
         )
-
-    def _round_length(self) -> TrainFreq:
-        """
-        :return: How much one round collects, in ``env.step()`` calls (each gives ``n_envs`` transitions) or episodes.
-        """
-        assert isinstance(self.train_freq, TrainFreq)
-        if self.train_freq.unit == TrainFrequencyUnit.EPISODE:
-            return self.train_freq
-        return TrainFreq(math.ceil(self.train_freq.frequency / self.n_envs), TrainFrequencyUnit.STEP)
 
     def learn(
         self: SelfNFQ,
@@ -268,10 +252,10 @@ class NFQ(OffPolicyAlgorithm):
         callback.on_training_start(locals(), globals())
         assert self.env is not None
 
-        round_length = self._round_length()
-        by_episode = round_length.unit == TrainFrequencyUnit.EPISODE
+        length = round_length(self.train_freq, self.n_envs)
+        by_episode = length.unit == TrainFrequencyUnit.EPISODE
         while True:
-            if (self._round_episodes if by_episode else self._round_steps) >= self._round_size(round_length):
+            if (self._round_episodes if by_episode else self._round_steps) >= self._round_size(length):
                 # 2. Fit: gradient_steps fitted iterations on the whole memory.
                 self.train(gradient_steps=self.gradient_steps, batch_size=self.batch_size)
                 self._round_steps = self._round_episodes = self._round_target = 0
@@ -283,62 +267,30 @@ class NFQ(OffPolicyAlgorithm):
             # 1. Collect (the rest of) a round with the epsilon-greedy policy, stopping at total_timesteps.
             self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)
             if by_episode:
-                to_collect = round_length.frequency - self._round_episodes
+                to_collect = length.frequency - self._round_episodes
             else:
                 steps_left = math.ceil((total_timesteps - self.num_timesteps) / self.n_envs)
-                to_collect = min(self._round_size(round_length) - self._round_steps, steps_left)
+                to_collect = min(self._round_size(length) - self._round_steps, steps_left)
             rollout = self.collect_rollouts(
                 self.env,
                 callback=callback,
-                train_freq=TrainFreq(to_collect, round_length.unit),
+                train_freq=TrainFreq(to_collect, length.unit),
                 replay_buffer=self.replay_buffer,
                 log_interval=log_interval,
             )
             if not rollout.continue_training:
-                self._store_interrupted_step(callback)
-            if self._round_steps > self.replay_buffer.buffer_size:
-                raise ValueError(
-                    f"Round {self._n_rounds + 1} collected {self._round_steps * self.n_envs} transitions, more than "
-                    f"buffer_size={self.buffer_size} holds; raise buffer_size."
-                )
-            if not rollout.continue_training:
+                store_interrupted_step(self, callback)
                 break  # a complete round is fitted by the next learn(), before it collects
 
         callback.on_training_end()
         return self
 
-    def _round_size(self, round_length: TrainFreq) -> int:
-        """
-        :param round_length: the round length ``train_freq`` asks for
-        :return: how long the current round is, in episodes or ``env.step()`` calls: ``train_freq``, or with
-            ``round_fraction`` the larger of ``train_freq`` and ``round_fraction`` times the transitions the memory
-            held when the round started (fixed then, and saved with the model)
-        """
-        if self.round_fraction is None or round_length.unit == TrainFrequencyUnit.EPISODE:
-            return round_length.frequency
+    def _round_size(self, length: TrainFreq) -> int:
+        """:return: the current round's length, in episodes or ``env.step()`` calls (fixed when it starts)"""
         if self._round_target == 0:
             held = (self.replay_buffer.size() - self._round_steps) * self.n_envs
-            self._round_target = max(round_length.frequency, math.ceil(self.round_fraction * held / self.n_envs))
+            self._round_target = round_size(length, self.round_fraction, held, self.n_envs)
         return self._round_target
-
-    def _store_interrupted_step(self, callback: BaseCallback) -> None:
-        """
-        SB3's ``collect_rollouts`` returns as soon as a callback's ``on_step`` says stop, before it stores that
-        step's transition and moves ``_last_obs`` on. Finish the step from the callback's view of
-        ``collect_rollouts``' locals, so that nothing collected is lost and the next ``learn()`` goes on from the
-        env's real state.
-
-        :param callback: the callback ``learn()`` passed to ``collect_rollouts``
-        """
-        step = callback.locals
-        dones = np.asarray(step["dones"])
-        self._update_info_buffer(step["infos"], dones)
-        self._store_transition(
-            self.replay_buffer, step["buffer_actions"], step["new_obs"], step["rewards"], dones, step["infos"]
-        )
-        self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
-        self._on_step()
-        self._episode_num += int(dones.sum())
 
     def _store_transition(
         self,
@@ -351,11 +303,13 @@ class NFQ(OffPolicyAlgorithm):
     ) -> None:
         """
         Store one ``env.step()``'s transitions (SB3's), and count them into the current round, so that the round's
-        progress saved with a model (e.g. by ``CheckpointCallback``) always matches what the memory holds.
+        progress saved with a model (e.g. by ``CheckpointCallback``) always matches what the memory holds. A round
+        longer than the memory (episodes can make one) stops with an error before it overwrites itself further.
         """
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
         self._round_steps += 1
         self._round_episodes += int(np.sum(dones))
+        check_round_fits(self._round_steps, replay_buffer, self.buffer_size, self._n_rounds + 1)
 
     def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
         """
@@ -382,12 +336,7 @@ class NFQ(OffPolicyAlgorithm):
         self._update_learning_rate(self.policy.optimizer)
         n_transitions = len(batch.rewards)
         self._n_rounds += 1
-        full_batch = batch_size is None or batch_size >= n_transitions
-        # Reading Q(s', .) off the Q(s, .) pass needs that pass to cover the whole memory at once, and a network
-        # that computes the same in training and eval mode.
-        one_pass = n_transitions <= rows_per_chunk(batch.observations)
-        share = full_batch and one_pass and not has_mode_dependent_layers(self.q_net)
-        shared_states = states_and_successors(batch, n_envs) if share else None
+        shared_states = shared_successor_states(self.q_net, batch, n_envs, batch_size)
 
         losses = []
         for iteration in range(gradient_steps):

@@ -10,8 +10,10 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
 from sb3_nfq import NFQ
+from sb3_nfq.rounds import fresh_round_transitions, round_length, round_size
 from tests.conftest import TransitionRecorder, record_fitting
 
 
@@ -274,6 +276,27 @@ def test_a_resumed_round_keeps_the_length_it_started_with(tmp_path: Path) -> Non
 def test_bad_round_fraction_is_refused(kwargs: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         NFQ("MlpPolicy", "CartPole-v1", **kwargs)
+
+
+def test_round_arithmetic() -> None:
+    steps, episodes = TrainFrequencyUnit.STEP, TrainFrequencyUnit.EPISODE
+    assert round_length(TrainFreq(1024, steps), 3) == TrainFreq(342, steps)  # rounded up to whole env.step() calls
+    assert round_length(TrainFreq(5, episodes), 1) == TrainFreq(5, episodes)
+    assert round_size(TrainFreq(64, steps), None, 10_000, 1) == 64
+    assert round_size(TrainFreq(64, steps), 0.5, 100, 1) == 64  # train_freq is the shortest round
+    assert round_size(TrainFreq(64, steps), 0.5, 1_000, 1) == 500
+    assert round_size(TrainFreq(64, steps), 0.5, 999, 2) == 250  # 499.5 transitions: 250 steps of 2 envs
+    assert round_size(TrainFreq(3, episodes), 0.5, 1_000, 1) == 3
+    assert fresh_round_transitions(TrainFreq(1024, steps), 3, "fresh") == 1026
+    assert fresh_round_transitions(TrainFreq(1024, steps), 3, "growing") is None
+    assert fresh_round_transitions(TrainFreq(3, episodes), 1, "fresh") is None
+
+
+def test_an_episode_round_longer_than_the_memory_stops_at_its_first_step_too_many() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=(50, "episode"), buffer_size=100, gradient_steps=1, seed=0)
+    with pytest.raises(ValueError, match=r"Round 1 collected 101 transitions, more than buffer_size=100 holds"):
+        model.learn(1)
+    assert model.num_timesteps == 101
 
 
 def test_textbook_rounds_do_not_lengthen() -> None:

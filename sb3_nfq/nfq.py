@@ -21,6 +21,7 @@ from stable_baselines3.common.type_aliases import (
 )
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
+from sb3_nfq import rounds
 from sb3_nfq.checkpoints import check_nfq_checkpoint
 from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
@@ -45,13 +46,6 @@ from sb3_nfq.parameters import (
     reject_dqn_parameters,
 )
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
-from sb3_nfq.rounds import (
-    check_round_fits,
-    fresh_round_transitions,
-    round_length,
-    round_size,
-    store_interrupted_step,
-)
 
 SelfNFQ = TypeVar("SelfNFQ", bound="NFQ")
 
@@ -211,7 +205,7 @@ class NFQ(OffPolicyAlgorithm):
         super()._setup_model()
         self.q_net = self.policy.q_net
         # Rprop needs a round's fit in full batches, which only a fresh memory of step rounds bounds.
-        fit_size = fresh_round_transitions(self.train_freq, self.n_envs, self.memory)
+        fit_size = rounds.fresh_round_transitions(self.train_freq, self.n_envs, self.memory)
         check_full_batch_optimizer(
             self.policy.optimizer, self.batch_size, fit_size, f"a round's fit (memory={self.memory!r})"
         )
@@ -252,7 +246,7 @@ class NFQ(OffPolicyAlgorithm):
         callback.on_training_start(locals(), globals())
         assert self.env is not None
 
-        length = round_length(self.train_freq, self.n_envs)
+        length = rounds.round_length(self.train_freq, self.n_envs)
         by_episode = length.unit == TrainFrequencyUnit.EPISODE
         while True:
             if (self._round_episodes if by_episode else self._round_steps) >= self._round_size(length):
@@ -279,7 +273,7 @@ class NFQ(OffPolicyAlgorithm):
                 log_interval=log_interval,
             )
             if not rollout.continue_training:
-                store_interrupted_step(self, callback)
+                rounds.store_interrupted_step(self, callback)
                 break  # a complete round is fitted by the next learn(), before it collects
 
         callback.on_training_end()
@@ -289,7 +283,7 @@ class NFQ(OffPolicyAlgorithm):
         """:return: the current round's length, in episodes or ``env.step()`` calls (fixed when it starts)"""
         if self._round_target == 0:
             held = (self.replay_buffer.size() - self._round_steps) * self.n_envs
-            self._round_target = round_size(length, self.round_fraction, held, self.n_envs)
+            self._round_target = rounds.round_size(length, self.round_fraction, held, self.n_envs)
         return self._round_target
 
     def _store_transition(
@@ -302,14 +296,13 @@ class NFQ(OffPolicyAlgorithm):
         infos: list[dict[str, Any]],
     ) -> None:
         """
-        Store one ``env.step()``'s transitions (SB3's), and count them into the current round, so that the round's
-        progress saved with a model (e.g. by ``CheckpointCallback``) always matches what the memory holds. A round
-        longer than the memory (episodes can make one) stops with an error before it overwrites itself further.
+        Store one ``env.step()``'s transitions and count them into the current round, so that the round's progress
+        saved with a model always matches the memory; a round longer than the memory stops with an error at once.
         """
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
         self._round_steps += 1
         self._round_episodes += int(np.sum(dones))
-        check_round_fits(self._round_steps, replay_buffer, self.buffer_size, self._n_rounds + 1)
+        rounds.check_round_fits(self._round_steps, replay_buffer, self.buffer_size, self._n_rounds + 1)
 
     def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
         """
@@ -432,8 +425,7 @@ class NFQ(OffPolicyAlgorithm):
         :param state: The last states (unused, for recurrent policies)
         :param episode_start: The last masks (unused, for recurrent policies)
         :param deterministic: Whether to return the greedy action(s)
-        :return: the model's action(s), always an ``np.ndarray`` (0-d for one observation), and the next state
-            (unused)
+        :return: the action(s), always an ``np.ndarray`` (0-d for one observation), and the next state (unused)
         """
         reject_obs_info_pair(observation)
         if deterministic or self.exploration_rate <= 0:

@@ -17,7 +17,15 @@ from sb3_nfq.configs import (
 
 
 def test_shipped_configs_are_the_named_files_without_the_zoo_file() -> None:
-    assert config_names() == ["nfq-atari", "nfq-book", "nfq-capped", "nfq-linear", "nfq-shared", "nfq-tuned"]
+    assert config_names() == [
+        "nfq-atari",
+        "nfq-book",
+        "nfq-capped",
+        "nfq-capped-10k",
+        "nfq-linear",
+        "nfq-shared",
+        "nfq-tuned",
+    ]
 
 
 def test_an_env_without_an_entry_gets_the_default_entry() -> None:

@@ -146,10 +146,8 @@ def test_every_entry_builds_nfq_and_trains_one_round(entry: str) -> None:
     if env_id == "LunarLander-v3":
         pytest.importorskip("Box2D")
     assert hyperparams.pop("n_timesteps") > 0
-    if isinstance(hyperparams.get("policy_kwargs"), str):
-        # As the zoo does: evaluated with torch as `th` and torch.nn as `nn` in scope
-        hyperparams["policy_kwargs"] = eval(hyperparams["policy_kwargs"], {"th": th, "nn": nn})
-    model = NFQ(env=gym.make(env_id), seed=0, **hyperparams)
+    # As the zoo does: policy_kwargs strings evaluated, "lin_<x>" learning rates made linear schedules
+    model = NFQ(env=gym.make(env_id), seed=0, **zoo_to_kwargs(hyperparams))
     assert isinstance(model.train_freq, TrainFreq)
     model.learn(total_timesteps=model.train_freq.frequency)
     assert model._n_updates > 0

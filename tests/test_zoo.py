@@ -16,14 +16,12 @@ from typing import Any
 import gymnasium as gym
 import optuna
 import pytest
-import torch as th
 import yaml
 from optuna.storages.journal import JournalFileBackend
 from optuna.trial import TrialState
 from stable_baselines3.common.env_util import make_atari_env
 from stable_baselines3.common.type_aliases import TrainFreq
 from stable_baselines3.common.vec_env import VecFrameStack
-from torch import nn
 
 from sb3_nfq import NFQ
 from sb3_nfq.configs import RECOMMENDED, read_entry, zoo_to_kwargs
@@ -161,9 +159,8 @@ def test_atari_entry_builds_nfq_on_the_zoos_atari_stack_and_trains() -> None:
     assert hyperparams.pop("env_wrapper") == ["stable_baselines3.common.atari_wrappers.AtariWrapper"]
     env = VecFrameStack(make_atari_env("PongNoFrameskip-v4", n_envs=1, seed=0), n_stack=hyperparams.pop("frame_stack"))
     assert hyperparams.pop("n_timesteps") > 0
-    hyperparams["policy_kwargs"] = eval(hyperparams["policy_kwargs"], {"th": th, "nn": nn})
     hyperparams.update(train_freq=64, gradient_steps=1)  # one small round: the entry's 4096 frames take minutes
-    model = NFQ(env=env, seed=0, **hyperparams)
+    model = NFQ(env=env, seed=0, **zoo_to_kwargs(hyperparams))
     model.learn(total_timesteps=64)
     assert model._n_updates == 1  # 64 < batch_size: one full-batch step
     assert model.q_net(model.policy.obs_to_tensor(env.reset())[0]).shape == (1, 6)

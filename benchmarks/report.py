@@ -523,7 +523,9 @@ def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baselin
     :param algo: the config measured
     :param baseline: the config it is compared with
     :return: the runs of ``algo`` and ``baseline`` on ``env`` trained to the budget by one runner command (so on the
-        same machine in the same session), the command with the most seeds of both; ``None`` if no command ran both
+        same machine in the same session), the command with the most seeds of both and, among those, the fewest
+        worker processes (jobs sharing the cores slow NFQ's full-memory fits more than DQN's small batches, and one
+        job at a time is how a user trains); ``None`` if no command ran both
     """
     by_command: dict[str, dict[str, list[dict[str, Any]]]] = defaultdict(lambda: defaultdict(list))
     for record in records:
@@ -532,11 +534,30 @@ def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baselin
     both = [runs for runs in by_command.values() if runs[algo] and runs[baseline]]
     if not both:
         return None
-    runs = max(both, key=lambda runs: min(len(runs[algo]), len(runs[baseline])))
+    runs = max(
+        both,
+        key=lambda runs: (min(len(runs[algo]), len(runs[baseline])), -_workers([*runs[algo], *runs[baseline]])),
+    )
     num, den = (
         Cell(env, name, runs[name][0]["budget"], runs[name][0]["config_hash"], runs[name]) for name in (algo, baseline)
     )
     return num, den
+
+
+def _workers(records: Sequence[dict[str, Any]]) -> int:
+    """
+    :param records: result lines of one runner command
+    :return: the most jobs that ran at once for them: the local pool's worker count (1 for a run in the runner's own
+        process, or one without a launcher on record); a Ray cluster's is unknown and counts as the most
+    """
+    counts = []
+    for record in records:
+        launcher = str(record.get("launcher", "in-process"))
+        if launcher.startswith("local pool ("):
+            counts.append(int(launcher.removeprefix("local pool (").split()[0]))
+        else:
+            counts.append(sys.maxsize if launcher.startswith("ray") else 1)
+    return max(counts)
 
 
 def seconds_ratio_target(
@@ -560,7 +581,9 @@ def seconds_ratio_target(
             verdicts.append("not enough data")
             continue
         num, den = (float(np.median(cell.train_seconds())) for cell in pair)
-        parts.append(f"{env}: {num / den:.2f} ({num:.0f} s / {den:.0f} s, {pair[0].n} seeds)")
+        workers = _workers([*pair[0].runs, *pair[1].runs])
+        ran = "on a Ray cluster" if workers == sys.maxsize else f"{workers} job{'s' if workers > 1 else ''} at a time"
+        parts.append(f"{env}: {num / den:.2f} ({num:.0f} s / {den:.0f} s, {pair[0].n} seeds, {ran})")
         verdicts.append("met" if num / den <= high else "not met")
     verdict = "not met" if "not met" in verdicts else "not enough data" if "not enough data" in verdicts else "met"
     return verdict, "; ".join(parts)

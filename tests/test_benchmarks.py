@@ -501,7 +501,7 @@ def test_seconds_ratio_is_judged_only_on_runs_made_side_by_side(results_file: Pa
 
     together = [*runs(book, 30.0, "together"), *runs(dqn, 20.0, "together")]
     verdict, text = report.seconds_ratio_target(together, ["CartPole-v1"], "nfq-book", "dqn-zoo", 1.5)
-    assert (verdict, text) == ("met", "CartPole-v1: 1.50 (30 s / 20 s, 5 seeds)")
+    assert (verdict, text) == ("met", "CartPole-v1: 1.50 (30 s / 20 s, 5 seeds, 1 job at a time)")
     assert report.seconds_ratio_target(together, ["CartPole-v1"], "nfq-book", "dqn-zoo", 1.4)[0] == "not met"
     # the baseline's faster runs of another session, and runs stopped at the solve, do not count
     apart = [*together, *runs(dqn, 5.0, "another day"), *runs(book, 1.0, "together", stop_at_solve=True)]
@@ -510,6 +510,16 @@ def test_seconds_ratio_is_judged_only_on_runs_made_side_by_side(results_file: Pa
     assert verdict == "not enough data" and "(none)" in text
     verdict, _ = report.seconds_ratio_target(together, ["CartPole-v1", "Acrobot-v1"], "nfq-book", "dqn-zoo", 2.0)
     assert verdict == "not enough data"
+    # of two commands with five seeds each, the one that ran one job at a time counts, whichever came first
+    pool = "local pool (2 spawned workers)"
+    shared = [*runs(book, 60.0, "two at a time", launcher=pool), *runs(dqn, 30.0, "two at a time", launcher=pool)]
+    alone = [*runs(book, 30.0, "one at a time", launcher="local pool (1 spawned workers)")]
+    alone += runs(dqn, 25.0, "one at a time", launcher="local pool (1 spawned workers)")
+    for order in ([*shared, *alone], [*alone, *shared]):
+        verdict, text = report.seconds_ratio_target(order, ["CartPole-v1"], "nfq-book", "dqn-zoo", 1.5)
+        assert (verdict, text) == ("met", "CartPole-v1: 1.20 (30 s / 25 s, 5 seeds, 1 job at a time)")
+    verdict, text = report.seconds_ratio_target(shared, ["CartPole-v1"], "nfq-book", "dqn-zoo", 1.5)
+    assert (verdict, text) == ("not met", "CartPole-v1: 2.00 (60 s / 30 s, 5 seeds, 2 jobs at a time)")
 
 
 def test_report_judges_staying_solved_only_on_runs_trained_to_the_budget(results_file: Path) -> None:

@@ -53,7 +53,15 @@ ENVS: dict[str, EnvSpec] = {
 N_EVAL_EPISODES = 100
 
 #: The NFQ configs the benchmark runs, in report order: sb3_nfq/hyperparams/<name>.yml, where each is described.
-NFQ_CONFIG_NAMES = ("nfq-book", "nfq-tuned", "nfq-shared", "nfq-linear", "nfq-capped", "nfq-capped-10k")
+NFQ_CONFIG_NAMES = (
+    "nfq-book",
+    "nfq-tuned",
+    "nfq-shared",
+    "nfq-linear",
+    "nfq-capped",
+    "nfq-capped-10k",
+    "nfq-capped-mse",
+)
 
 #: The config whose budget the reference gets: it runs the same textbook settings.
 REFERENCE_BUDGET_OF = "nfq-book"

@@ -22,6 +22,7 @@ def test_shipped_configs_are_the_named_files_without_the_zoo_file() -> None:
         "nfq-book",
         "nfq-capped",
         "nfq-capped-10k",
+        "nfq-capped-mse",
         "nfq-linear",
         "nfq-shared",
         "nfq-tuned",

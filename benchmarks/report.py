@@ -36,7 +36,7 @@ import numpy as np
 import yaml
 
 from benchmarks import configs, readme_blocks
-from benchmarks.run import DEFAULT_BOOK_RESULTS, DEFAULT_RESULTS, REPO_ROOT, read_results
+from benchmarks.run import DEFAULT_BOOK_RESULTS, DEFAULT_RESULTS, REPO_ROOT, jobs_at_once, read_results
 from benchmarks.scaling import DEFAULT_OUT as DEFAULT_SCALING
 from benchmarks.scaling import spread as scaling_spread
 from benchmarks.scaling import table as scaling_table
@@ -547,17 +547,10 @@ def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baselin
 def _workers(records: Sequence[dict[str, Any]]) -> int:
     """
     :param records: result lines of one runner command
-    :return: the most jobs that ran at once for them: the local pool's worker count (1 for a run in the runner's own
-        process, or one without a launcher on record); a Ray cluster's is unknown and counts as the most
+    :return: the most jobs that ran at once for them (see :func:`benchmarks.run.jobs_at_once`); a Ray cluster's
+        count is unknown and counts as the most
     """
-    counts = []
-    for record in records:
-        launcher = str(record.get("launcher", "in-process"))
-        if launcher.startswith("local pool ("):
-            counts.append(int(launcher.removeprefix("local pool (").split()[0]))
-        else:
-            counts.append(sys.maxsize if launcher.startswith("ray") else 1)
-    return max(counts)
+    return max(sys.maxsize if (jobs := jobs_at_once(record)) is None else jobs for record in records)
 
 
 def seconds_ratio_target(

@@ -709,6 +709,29 @@ def done_keys(results: Path, jobs: Sequence[Job], rerun: bool = False) -> set[tu
     return {result_key(record) for record in read_results(results) if not rerun or record["command"] in commands}
 
 
+def launcher(workers: int, ray_address: str | None = None) -> str:
+    """
+    :param workers: local worker processes (0: the runner's own process)
+    :param ray_address: the Ray cluster the jobs ran on, if any
+    :return: how the jobs ran, as recorded in each result line's ``launcher`` (read back by :func:`jobs_at_once`)
+    """
+    if ray_address:
+        return f"ray ({ray_address})"
+    return f"local pool ({workers} spawned workers)" if workers else "in-process"
+
+
+def jobs_at_once(record: dict[str, Any]) -> int | None:
+    """
+    :param record: a result line
+    :return: how many jobs ran at once, this one included: its local pool's worker count, 1 in the runner's own
+        process (or for a line without a launcher on record), ``None`` on a Ray cluster (unknown)
+    """
+    name = str(record.get("launcher", launcher(0)))
+    if name.startswith("ray ("):
+        return None
+    return int(name.removeprefix("local pool (").split()[0]) if name.startswith("local pool (") else 1
+
+
 def run_jobs(
     jobs: Sequence[Job], results: Path, workers: int, ray_address: str | None = None, rerun: bool = False
 ) -> tuple[int, int, int]:
@@ -735,10 +758,7 @@ def run_jobs(
 
     def on_result(job: Job, record: dict[str, Any]) -> None:
         nonlocal finished
-        if ray_address:
-            record["launcher"] = f"ray ({ray_address})"
-        else:
-            record["launcher"] = f"local pool ({workers} spawned workers)" if workers else "in-process"
+        record["launcher"] = launcher(workers, ray_address)
         append_result(results, record)
         finished += 1
         print(f"[{finished}/{len(todo)}] {_describe(record)}", flush=True)

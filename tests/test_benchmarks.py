@@ -511,10 +511,9 @@ def test_seconds_ratio_is_judged_only_on_runs_made_side_by_side(results_file: Pa
     verdict, _ = report.seconds_ratio_target(together, ["CartPole-v1", "Acrobot-v1"], "nfq-book", "dqn-zoo", 2.0)
     assert verdict == "not enough data"
     # of two commands with five seeds each, the one that ran one job at a time counts, whichever came first
-    pool = "local pool (2 spawned workers)"
-    shared = [*runs(book, 60.0, "two at a time", launcher=pool), *runs(dqn, 30.0, "two at a time", launcher=pool)]
-    alone = [*runs(book, 30.0, "one at a time", launcher="local pool (1 spawned workers)")]
-    alone += runs(dqn, 25.0, "one at a time", launcher="local pool (1 spawned workers)")
+    two, one = run.launcher(2), run.launcher(1)
+    shared = [*runs(book, 60.0, "two at a time", launcher=two), *runs(dqn, 30.0, "two at a time", launcher=two)]
+    alone = [*runs(book, 30.0, "one at a time", launcher=one), *runs(dqn, 25.0, "one at a time", launcher=one)]
     for order in ([*shared, *alone], [*alone, *shared]):
         verdict, text = report.seconds_ratio_target(order, ["CartPole-v1"], "nfq-book", "dqn-zoo", 1.5)
         assert (verdict, text) == ("met", "CartPole-v1: 1.20 (30 s / 25 s, 5 seeds, 1 job at a time)")

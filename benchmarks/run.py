@@ -321,7 +321,9 @@ class GreedyEvaluator:
 
 class SolveTracker:
     """
-    Runs the periodic greedy evaluations of one job and keeps its learning curve and the time spent evaluating.
+    Runs the periodic greedy evaluations of one job and keeps its learning curve and the time spent evaluating; fed
+    the training steps' episode ends (:meth:`count_episode_ends`), it also keeps, per evaluation, how many training
+    episodes ended since the previous one and how many of those by termination (on MountainCar: at the goal).
 
     :param evaluator: plays the evaluation episodes
     :param threshold: solved when the mean return reaches this
@@ -339,6 +341,20 @@ class SolveTracker:
         self.eval_seconds = 0.0
         self.stopped = False
         self._next_eval = 0
+        self.episode_ends: list[list[int]] = []
+        self.counts_episode_ends = False
+        self._ended = self._terminated = 0
+
+    def count_episode_ends(self, dones: np.ndarray, infos: Sequence[dict[str, Any]]) -> None:
+        """
+        :param dones: one training ``VecEnv.step()``'s done flags
+        :param infos: its infos (a time-limit truncation sets ``TimeLimit.truncated``)
+        """
+        self.counts_episode_ends = True
+        for done, info in zip(dones, infos, strict=True):
+            if done:
+                self._ended += 1
+                self._terminated += int(not info.get("TimeLimit.truncated", False))
 
     def evaluate(self, steps: int, act: Actor) -> float:
         """
@@ -350,6 +366,8 @@ class SolveTracker:
         mean = float(np.mean(self.evaluator.evaluate(act)))
         self.eval_seconds += time.perf_counter() - start
         self.curve.append([steps, mean])
+        self.episode_ends.append([steps, self._ended, self._terminated])
+        self._ended = self._terminated = 0
         self._next_eval = (steps // self.eval_every + 1) * self.eval_every
         if mean >= self.threshold and self.steps_to_solve is None:
             self.steps_to_solve = steps
@@ -390,6 +408,7 @@ def _round_end_callback(tracker: SolveTracker, act: Actor) -> Any:
             self.keep_training = tracker.maybe_evaluate(self.model.num_timesteps, act)
 
         def _on_step(self) -> bool:
+            tracker.count_episode_ends(self.locals["dones"], self.locals["infos"])
             return self.keep_training
 
         def _on_training_end(self) -> None:
@@ -586,6 +605,8 @@ def run_job(job: Job) -> dict[str, Any]:
             "stopped_at_solve": tracker.stopped,
             "eval_seconds": tracker.eval_seconds,
             "curve": tracker.curve,
+            # [steps, training episodes ended since the previous evaluation, how many of them by termination]
+            "train_episode_ends": tracker.episode_ends if tracker.counts_episode_ends else None,
         }
     return {
         "algo": job.algo,

@@ -231,6 +231,13 @@ def test_runner_writes_one_valid_line_per_job(results_file: Path) -> None:
         steps = [point[0] for point in record["curve"]]
         assert steps[0] == 0 and steps[-1] == record["steps_trained"] >= 1024
         assert all(isinstance(point[1], float) for point in record["curve"])
+        ends = record["train_episode_ends"]
+        if record["algo"] == "reference-nfq":
+            assert ends is None  # its own training loop: not counted
+        else:  # no episode of an untrained CartPole policy lasts the 500 steps of the time limit
+            assert [point[0] for point in ends] == steps
+            ended = sum(point[1] for point in ends)
+            assert ended == sum(point[2] for point in ends) >= 1024 // 500
     dqn = next(r for r in records if r["algo"] == "dqn-zoo")
     assert dqn["config"]["policy_kwargs"] == "dict(net_arch=[256, 256])"
     assert dqn["effective_hyperparams"]["net_arch"] == [256, 256]
@@ -274,6 +281,24 @@ def test_training_envs_have_no_render_mode_like_the_reference() -> None:
         expected, _, _, _, _ = reference_env.step(2)
         np.testing.assert_array_equal(observations[0], expected)
     assert vec_env.get_attr("particles") == [[], []]
+
+
+def test_training_episodes_cut_by_the_time_limit_are_not_counted_as_terminated() -> None:
+    th.set_num_threads(1)
+    job = run.Job(
+        algo="nfq-book",
+        kind="nfq",
+        env_id="MountainCar-v0",
+        seed=0,
+        budget=600,
+        kwargs={},
+        threshold=-110.0,
+        eval_every=1024,
+        n_eval_episodes=2,
+    )
+    record = run.run_job(job)
+    # 600 steps of an untrained policy: three episodes, each cut at MountainCar's 200 steps, none at the goal
+    assert record["train_episode_ends"] == [[0, 0, 0], [600, 3, 0]]
 
 
 def test_a_diverged_nfq_run_is_recorded_as_unsolved_with_the_error() -> None:

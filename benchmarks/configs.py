@@ -61,6 +61,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-capped",
     "nfq-capped-10k",
     "nfq-capped-mse",
+    "nfq-short-rounds",
 )
 
 #: The config whose budget the reference gets: it runs the same textbook settings.

@@ -25,6 +25,7 @@ def test_shipped_configs_are_the_named_files_without_the_zoo_file() -> None:
         "nfq-capped-mse",
         "nfq-linear",
         "nfq-shared",
+        "nfq-short-rounds",
         "nfq-tuned",
     ]
 

@@ -62,6 +62,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-capped-10k",
     "nfq-capped-mse",
     "nfq-short-rounds",
+    "nfq-short-rounds-64",
 )
 
 #: The config whose budget the reference gets: it runs the same textbook settings.

@@ -26,6 +26,7 @@ def test_shipped_configs_are_the_named_files_without_the_zoo_file() -> None:
         "nfq-linear",
         "nfq-shared",
         "nfq-short-rounds",
+        "nfq-short-rounds-64",
         "nfq-tuned",
     ]
 

@@ -39,6 +39,7 @@ import shlex
 import socket
 import subprocess
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable, Sequence
@@ -659,6 +660,24 @@ def _describe(record: dict[str, Any]) -> str:
     )
 
 
+def exit_with_parent(poll_seconds: float = 1.0) -> None:
+    """
+    Pool-worker initializer: end this worker once the runner that spawned it is gone. A runner stopped by a signal
+    (``kill``, ``pkill``: no ``finally`` runs) leaves its spawned workers training on, to compete for the cores with
+    the next command's jobs and slow them; a worker whose parent changes has been orphaned, so it exits.
+
+    :param poll_seconds: how often the parent is checked
+    """
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_seconds)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def _run_local(jobs: Sequence[Job], workers: int, on_result: Callable[[Job, dict[str, Any]], None]) -> int:
     failures = 0
     if workers == 0:  # in this process, one after the other (debugging, tests)
@@ -672,7 +691,10 @@ def _run_local(jobs: Sequence[Job], workers: int, on_result: Callable[[Job, dict
     # One fresh spawned process per job: no state (threads, RNG, imports) leaks from one job to the next.
     pool_kwargs: dict[str, Any] = {"max_tasks_per_child": 1} if sys.version_info >= (3, 11) else {}
     with concurrent.futures.ProcessPoolExecutor(
-        max_workers=workers, mp_context=multiprocessing.get_context("spawn"), **pool_kwargs
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=exit_with_parent,
+        **pool_kwargs,
     ) as pool:
         futures = {pool.submit(run_job, job): job for job in jobs}
         for future in concurrent.futures.as_completed(futures):

@@ -6,7 +6,11 @@ envs, no mocks.
 
 import json
 import os
+import signal
 import struct
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -805,3 +809,51 @@ def test_readme_main_job_table_is_the_generated_one() -> None:
     assert all(result["threads"] == 1 for result in payload["results"])
     text = readme_blocks.README.read_text()
     assert readme_blocks.replace_block(text, main_job.MARKERS, main_job.table(payload["results"])) == text
+
+
+# A runner whose pool has one spawned worker (with the runner's initializer) that reports its pid, then sleeps.
+ORPHAN_SCRIPT = """
+import concurrent.futures, multiprocessing, os, sys, time
+from benchmarks import run
+
+if __name__ == "__main__":
+    with concurrent.futures.ProcessPoolExecutor(
+        max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=run.exit_with_parent
+    ) as pool:
+        print(pool.submit(os.getpid).result(), flush=True)
+        pool.submit(time.sleep, 600)
+        time.sleep(600)
+"""
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads process states from /proc")
+def test_exit_with_parent_ends_a_pool_worker_whose_runner_is_killed() -> None:
+    runner = subprocess.Popen(
+        [sys.executable, "-c", ORPHAN_SCRIPT],
+        cwd=Path(__file__).resolve().parent.parent,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert runner.stdout is not None
+        worker = int(runner.stdout.readline())
+        time.sleep(1.0)  # the worker is now in its 600 s sleep
+        assert _running(worker)
+    finally:
+        runner.send_signal(signal.SIGKILL)  # no cleanup runs in the runner
+        runner.wait()
+    deadline = time.monotonic() + 30.0
+    while _running(worker) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    orphaned = _running(worker)
+    if orphaned:
+        os.kill(worker, signal.SIGKILL)
+    assert not orphaned, "the worker outlived its runner by 30 s"

@@ -660,15 +660,17 @@ def _describe(record: dict[str, Any]) -> str:
     )
 
 
-def exit_with_parent(poll_seconds: float = 1.0) -> None:
+def exit_with_parent(parent: int, poll_seconds: float = 1.0) -> None:
     """
     Pool-worker initializer: end this worker once the runner that spawned it is gone. A runner stopped by a signal
     (``kill``, ``pkill``: no ``finally`` runs) leaves its spawned workers training on, to compete for the cores with
-    the next command's jobs and slow them; a worker whose parent changes has been orphaned, so it exits.
+    the next command's jobs and slow them; a worker whose parent is no longer the runner has been orphaned, so it
+    exits.
 
+    :param parent: the runner's pid, passed in rather than read here, since the runner may be gone before a
+        starting worker has finished its imports
     :param poll_seconds: how often the parent is checked
     """
-    parent = os.getppid()
 
     def watch() -> None:
         while os.getppid() == parent:
@@ -676,6 +678,22 @@ def exit_with_parent(poll_seconds: float = 1.0) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def job_pool(workers: int) -> concurrent.futures.ProcessPoolExecutor:
+    """
+    :param workers: worker processes
+    :return: the local pool jobs run in: one fresh spawned process per job, so that no state (threads, RNG, imports)
+        leaks from one job to the next, each ending with its runner (:func:`exit_with_parent`)
+    """
+    pool_kwargs: dict[str, Any] = {"max_tasks_per_child": 1} if sys.version_info >= (3, 11) else {}
+    return concurrent.futures.ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=exit_with_parent,
+        initargs=(os.getpid(),),
+        **pool_kwargs,
+    )
 
 
 def _run_local(jobs: Sequence[Job], workers: int, on_result: Callable[[Job, dict[str, Any]], None]) -> int:
@@ -688,14 +706,7 @@ def _run_local(jobs: Sequence[Job], workers: int, on_result: Callable[[Job, dict
                 failures += 1
                 print(f"FAILED {job.algo} {job.env_id} seed {job.seed}:\n{traceback.format_exc()}", file=sys.stderr)
         return failures
-    # One fresh spawned process per job: no state (threads, RNG, imports) leaks from one job to the next.
-    pool_kwargs: dict[str, Any] = {"max_tasks_per_child": 1} if sys.version_info >= (3, 11) else {}
-    with concurrent.futures.ProcessPoolExecutor(
-        max_workers=workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=exit_with_parent,
-        **pool_kwargs,
-    ) as pool:
+    with job_pool(workers) as pool:
         futures = {pool.submit(run_job, job): job for job in jobs}
         for future in concurrent.futures.as_completed(futures):
             job = futures[future]

@@ -811,16 +811,13 @@ def test_readme_main_job_table_is_the_generated_one() -> None:
     assert readme_blocks.replace_block(text, main_job.MARKERS, main_job.table(payload["results"])) == text
 
 
-# A runner whose pool has one spawned worker (with the runner's initializer) that reports its pid, then sleeps.
+# A runner whose job pool (the runner's own, one worker) runs one long job.
 ORPHAN_SCRIPT = """
-import concurrent.futures, multiprocessing, os, sys, time
+import time
 from benchmarks import run
 
 if __name__ == "__main__":
-    with concurrent.futures.ProcessPoolExecutor(
-        max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=run.exit_with_parent
-    ) as pool:
-        print(pool.submit(os.getpid).result(), flush=True)
+    with run.job_pool(1) as pool:
         pool.submit(time.sleep, 600)
         time.sleep(600)
 """
@@ -834,18 +831,27 @@ def _running(pid: int) -> bool:
     return state != "Z"
 
 
+def _pool_workers(pid: int) -> list[int]:
+    """
+    :param pid: a process
+    :return: its children that are multiprocessing's spawned workers (not its resource tracker)
+    """
+    children = [
+        int(child) for task in Path(f"/proc/{pid}/task").iterdir() for child in (task / "children").read_text().split()
+    ]
+    return [child for child in children if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes()]
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads process states from /proc")
-def test_exit_with_parent_ends_a_pool_worker_whose_runner_is_killed() -> None:
-    runner = subprocess.Popen(
-        [sys.executable, "-c", ORPHAN_SCRIPT],
-        cwd=Path(__file__).resolve().parent.parent,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+def test_a_job_pool_worker_ends_when_its_runner_is_killed() -> None:
+    runner = subprocess.Popen([sys.executable, "-c", ORPHAN_SCRIPT], cwd=Path(__file__).resolve().parent.parent)
     try:
-        assert runner.stdout is not None
-        worker = int(runner.stdout.readline())
-        time.sleep(1.0)  # the worker is now in its 600 s sleep
+        deadline = time.monotonic() + 60.0
+        while not (workers := _pool_workers(runner.pid)) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(workers) == 1, "the runner's pool started no worker"
+        worker = workers[0]
+        time.sleep(1.0)  # the worker may still be importing: its runner killed then, it must end too
         assert _running(worker)
     finally:
         runner.send_signal(signal.SIGKILL)  # no cleanup runs in the runner

@@ -491,8 +491,9 @@ def _period_note(eval_every: int | None) -> str:
 
 def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
     """
-    :param path: the targets file
-    :return: its targets, each checked to be of a known kind with the keys that kind needs
+    :param path: the targets file: targets, and groups ``{algos: [...], targets: [...]}`` that state targets once for
+        several algorithms (each of the group's targets, without ``algo``, is judged for each algorithm in turn)
+    :return: its targets, groups expanded in order, each checked to be of a known kind with the keys that kind needs
     """
     needs = {
         "steps_ratio": {"algo", "baseline", "env", "high"},
@@ -502,7 +503,20 @@ def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
         "seconds_ratio": {"algo", "baseline", "envs", "high"},
     }
     optional = {"steps_ratio": {"low"}}
-    targets = yaml.safe_load(path.read_text())
+    targets: list[dict[str, Any]] = []
+    for entry in yaml.safe_load(path.read_text()):
+        if "kind" in entry:
+            targets.append(entry)
+            continue
+        if set(entry) != {"algos", "targets"} or not entry["algos"] or not entry["targets"]:
+            raise ValueError(
+                f"{path}: an entry without 'kind' is a group, which takes a non-empty 'algos' list and 'targets' list, "
+                f"got {sorted(entry)}"
+            )
+        for target in entry["targets"]:
+            if "algo" in target:
+                raise ValueError(f"{path}: a group's target takes its 'algo' from the group's 'algos', got {target}")
+        targets.extend({**target, "algo": algo} for algo in entry["algos"] for target in entry["targets"])
     for target in targets:
         kind = target.get("kind")
         if kind not in needs:
@@ -513,7 +527,7 @@ def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
                 f"{path}: a {kind} target takes {sorted(needs[kind])} (optional: {sorted(optional.get(kind, []))}), "
                 f"got {sorted(keys)}"
             )
-    return list(targets)
+    return targets
 
 
 def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baseline: str) -> tuple[Cell, Cell] | None:

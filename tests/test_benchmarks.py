@@ -518,6 +518,30 @@ def test_targets_are_read_from_data_and_bad_ones_are_refused(results_file: Path,
     path.write_text("- {kind: fastest, algo: nfq-book}\n")
     with pytest.raises(ValueError, match="unknown target kind 'fastest'"):
         report.read_targets(path)
+    # a group states its targets once and judges them for each of its algorithms, in order
+    path.write_text(
+        "- algos: [nfq-book, nfq-tuned]\n"
+        "  targets:\n"
+        "    - {kind: final_score, env: CartPole-v1}\n"
+        "    - {kind: solved_envs, at_least: 3}\n"
+        "- {kind: flat_fit_cost, mode: nfq-linear, tolerance: 0.3}\n"
+    )
+    assert [(target["kind"], target.get("algo")) for target in report.read_targets(path)] == [
+        ("final_score", "nfq-book"),
+        ("solved_envs", "nfq-book"),
+        ("final_score", "nfq-tuned"),
+        ("solved_envs", "nfq-tuned"),
+        ("flat_fit_cost", None),
+    ]
+    path.write_text("- {algos: [nfq-book], targets: [{kind: final_score, algo: nfq-tuned, env: CartPole-v1}]}\n")
+    with pytest.raises(ValueError, match="a group's target takes its 'algo' from the group's 'algos'"):
+        report.read_targets(path)
+    path.write_text("- {algo: [nfq-book], targets: [{kind: final_score, env: CartPole-v1}]}\n")
+    with pytest.raises(ValueError, match=r"a non-empty 'algos' list and 'targets' list, got \['algo', 'targets'\]"):
+        report.read_targets(path)
+    path.write_text("- {algos: [nfq-book], targets: [{kind: final_score}]}\n")
+    with pytest.raises(ValueError, match=r"a final_score target takes \['algo', 'env'\]"):
+        report.read_targets(path)
 
 
 def test_seconds_ratio_is_judged_only_on_runs_made_side_by_side(results_file: Path) -> None:

@@ -63,6 +63,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-capped-mse",
     "nfq-short-rounds",
     "nfq-short-rounds-64",
+    "nfq-short-rounds-lr-lin-4e-3",
 )
 
 #: The config whose budget the reference gets: it runs the same textbook settings.

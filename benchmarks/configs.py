@@ -76,10 +76,10 @@ REFERENCE_CONFIGS: dict[str, dict[str, Any]] = {"reference-nfq": {}}
 #: SB3's DQN with the RL Zoo's tuned hyperparameters (rl_zoo3's hyperparams/dqn.yml), n_timesteps as the budget.
 DQN_ZOO = "dqn-zoo"
 
-#: Keys of the Zoo's YAML that change the env or the training loop. None is set for the four envs here
-#: (checked when read); rather than half-support them, a config that sets one is refused.
+#: Keys of the Zoo's YAML that change the env or the training loop, which the runner does not apply (``normalize``
+#: it does: :func:`sb3_nfq.configs.vec_normalize_kwargs`). None is set for the four envs here (checked when read);
+#: rather than half-support them, a config that sets one is refused.
 ZOO_UNSUPPORTED_KEYS = (
-    "normalize",
     "env_wrapper",
     "vec_env_wrapper",
     "frame_stack",

@@ -53,7 +53,7 @@ import torch as th
 
 from benchmarks import configs
 from sb3_nfq.callbacks import StopTrainingOnBookCriterion
-from sb3_nfq.configs import zoo_to_kwargs
+from sb3_nfq.configs import vec_normalize_kwargs, zoo_to_kwargs
 
 if TYPE_CHECKING:
     from stable_baselines3.common.vec_env import VecEnv
@@ -483,19 +483,39 @@ def book_curve(callback: StopTrainingOnBookCriterion, every: int) -> list[list[f
     return curve
 
 
-def _train_sb3(job: Job, tracker: SolveTracker | StopTrainingOnBookCriterion) -> Trained:
+def build_sb3_model(job: Job) -> Any:
+    """
+    :param job: an NFQ or DQN job
+    :return: its model (SB3's ``NFQ`` or ``DQN``) on its training envs (:func:`make_training_env`), wrapped in
+        ``VecNormalize`` where the config's ``normalize`` key asks for it, as the RL Zoo does
+    """
     from stable_baselines3 import DQN
+    from stable_baselines3.common.vec_env import VecNormalize
 
-    from sb3_nfq import NFQ, NFQDivergenceError
+    from sb3_nfq import NFQ
 
     kwargs = dict(job.kwargs)
     n_envs = int(kwargs.pop("n_envs", 1))
     policy = kwargs.pop("policy", "MlpPolicy")
+    normalize = vec_normalize_kwargs(kwargs.pop("normalize", False), kwargs.get("gamma"))
     algorithm_class: Any = NFQ if job.kind == "nfq" else DQN
     env = make_training_env(job.env_id, n_envs=n_envs, seed=job.seed)
-    model = algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs))
+    if normalize is not None:
+        env = VecNormalize(env, **normalize)
+    return algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs))
+
+
+def _train_sb3(job: Job, tracker: SolveTracker | StopTrainingOnBookCriterion) -> Trained:
+    from sb3_nfq import NFQDivergenceError
+
+    model = build_sb3_model(job)
+    vec_normalize = model.get_vec_normalize_env()
 
     def act(observations: np.ndarray) -> np.ndarray:
+        # Evaluation episodes see the training env's running statistics as they are now, without updating them
+        # (the RL Zoo's evaluation env: VecNormalize with training=False, synced before each evaluation).
+        if vec_normalize is not None:
+            observations = vec_normalize.normalize_obs(observations)
         return model.predict(observations, deterministic=True)[0]
 
     start = time.perf_counter()
@@ -528,6 +548,8 @@ def _train_sb3(job: Job, tracker: SolveTracker | StopTrainingOnBookCriterion) ->
     effective["net_arch"] = _jsonable(getattr(model.policy, "net_arch", None))
     effective["optimizer"] = type(model.policy.optimizer).__name__
     effective["q_net"] = str(model.q_net.q_net).replace("\n", "")
+    if vec_normalize is not None:
+        effective["vec_normalize"] = {"norm_obs": vec_normalize.norm_obs, "norm_reward": vec_normalize.norm_reward}
     return Trained(model.num_timesteps, act, learn_seconds, effective, diverged)
 
 

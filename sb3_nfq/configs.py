@@ -12,6 +12,8 @@ bridge's file, generated from the config :data:`RECOMMENDED` for each env (``pyt
     model = NFQ("MlpPolicy", "CartPole-v1", **nfq_kwargs("nfq-shared", "CartPole-v1"))
 """
 
+import ast
+import contextlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -120,13 +122,50 @@ def zoo_to_kwargs(entry: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def vec_normalize_kwargs(normalize: bool | str | dict[str, Any], gamma: float | None = None) -> dict[str, Any] | None:
+    """
+    Read a zoo entry's ``normalize`` key as the RL Zoo's ExperimentManager does: ``true`` normalises observations
+    and rewards with ``VecNormalize``'s defaults, a dict (or a string of one, such as
+    ``"{'norm_obs': True, 'norm_reward': False}"``) gives ``VecNormalize``'s arguments; the entry's discount, when it
+    has one, is the one rewards are normalised with.
+
+    :param normalize: the entry's ``normalize`` value
+    :param gamma: the entry's ``gamma``, if it sets one
+    :return: keyword arguments for ``VecNormalize`` (the training env's), or ``None`` for no normalisation
+    """
+    value: Any = normalize
+    if isinstance(value, str):
+        with contextlib.suppress(ValueError, SyntaxError):  # not a literal: refused below, as written
+            value = ast.literal_eval(value)
+    if value is False:
+        return None
+    if value is True:
+        kwargs: dict[str, Any] = {}
+    elif isinstance(value, dict):
+        kwargs = dict(value)
+    else:
+        raise ValueError(f"normalize must be true, false or a dict of VecNormalize arguments, got {normalize!r}")
+    if gamma is not None:
+        kwargs["gamma"] = gamma
+    return kwargs
+
+
 def nfq_kwargs(name: str, env_id: str) -> dict[str, Any]:
     """
     :param name: a config name (see :func:`config_names`)
     :param env_id: a gymnasium env id with an entry in that file
     :return: the entry as ``NFQ`` keyword arguments (its budget, policy and number of envs left out)
+    :raises ValueError: when the entry normalises the env (``normalize``): that is the env's, not ``NFQ``'s, so
+        ``NFQ`` must be given the env wrapped in ``VecNormalize(env, **vec_normalize_kwargs(...))``
     """
     entry = read_entry(name, env_id)
+    if entry.get("normalize", False) is not False:
+        raise ValueError(
+            f"config {name!r} normalises {env_id}'s env (normalize: {entry['normalize']!r}), which no NFQ argument "
+            "does: wrap the env in VecNormalize(env, **vec_normalize_kwargs(entry['normalize'], entry.get('gamma'))) "
+            "(entry = read_entry(name, env_id)), pass it to NFQ with the other keys, or train it with "
+            "`python -m sb3_nfq.zoo train`, which does both"
+        )
     return zoo_to_kwargs({key: value for key, value in entry.items() if key not in ZOO_KEYS})
 
 

@@ -633,8 +633,33 @@ def test_every_tuning_candidate_builds_an_nfq_model() -> None:
             job = tune_nfq.candidate_jobs(env_id, [name], [0])[0]
             assert job.stop_at_solve and job.algo == f"tune:{name}"
             assert job.budget == candidate["n_timesteps"]
-            model = NFQ("MlpPolicy", env_id, **zoo_to_kwargs(job.kwargs))
-            assert model.gamma == candidate.get("gamma", 1.0)
+            model = run.build_sb3_model(job)
+            assert isinstance(model, NFQ) and model.gamma == candidate.get("gamma", 1.0)
+            assert (model.get_vec_normalize_env() is not None) == ("normalize" in candidate)
+
+
+def test_a_config_that_normalizes_trains_and_evaluates_on_normalized_observations() -> None:
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    th.set_num_threads(1)
+    job = run.Job(
+        algo="nfq-norm-obs",
+        kind="nfq",
+        env_id="MountainCar-v0",
+        seed=0,
+        budget=400,
+        kwargs={"normalize": "{'norm_obs': True, 'norm_reward': False}", "gamma": 0.99},
+        threshold=-110.0,
+        eval_every=1024,
+        n_eval_episodes=2,
+    )
+    env = run.build_sb3_model(job).get_env()
+    assert isinstance(env, VecNormalize) and env.norm_obs and not env.norm_reward and env.gamma == 0.99
+    record = run.run_job(job)
+    assert record["effective_hyperparams"]["vec_normalize"] == {"norm_obs": True, "norm_reward": False}
+    assert record["config"]["normalize"] == job.kwargs["normalize"]
+    plain = run.run_job(run.Job(**{**job.__dict__, "kwargs": {"gamma": 0.99}}))
+    assert "vec_normalize" not in plain["effective_hyperparams"]
 
 
 def test_a_candidate_is_its_base_config_with_the_keys_it_sets(tmp_path: Path) -> None:

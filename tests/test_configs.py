@@ -1,9 +1,12 @@
 """The configs shipped as data (sb3_nfq/hyperparams/*.yml) and their reading into NFQ's keyword arguments."""
 
+from pathlib import Path
+
 import pytest
 import torch as th
 import yaml
 
+import sb3_nfq.configs
 from sb3_nfq import NFQ
 from sb3_nfq.configs import (
     RECOMMENDED,
@@ -11,6 +14,7 @@ from sb3_nfq.configs import (
     config_names,
     nfq_kwargs,
     read_entry,
+    vec_normalize_kwargs,
     zoo_file_text,
     zoo_to_kwargs,
 )
@@ -76,6 +80,28 @@ def test_zoo_strings_become_objects() -> None:
     assert kwargs["train_freq"] == (2, "episode") and kwargs["policy_kwargs"] == {"a": 1}
     with pytest.raises(ValueError, match="unknown learning-rate schedule"):
         zoo_to_kwargs({"learning_rate": "exp_1e-3"})
+
+
+def test_normalize_is_read_as_the_rl_zoo_reads_it() -> None:
+    assert vec_normalize_kwargs(False) is None
+    assert vec_normalize_kwargs(True) == {}
+    assert vec_normalize_kwargs(True, gamma=0.98) == {"gamma": 0.98}
+    assert vec_normalize_kwargs("{'norm_obs': True, 'norm_reward': False}", gamma=0.99) == {
+        "norm_obs": True,
+        "norm_reward": False,
+        "gamma": 0.99,
+    }
+    assert vec_normalize_kwargs({"norm_reward": False}) == {"norm_reward": False}
+    with pytest.raises(ValueError, match="normalize must be true, false or a dict"):
+        vec_normalize_kwargs("yes")
+
+
+def test_nfq_kwargs_refuses_an_entry_that_normalizes_the_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    (tmp_path / "nfq-norm.yml").write_text("CartPole-v1:\n  n_timesteps: 1000\n  normalize: true\n")
+    monkeypatch.setattr(sb3_nfq.configs, "HYPERPARAMS_DIR", tmp_path)
+    monkeypatch.setattr(sb3_nfq.configs, "ZOO_FILE", tmp_path / "nfq.yml")
+    with pytest.raises(ValueError, match="config 'nfq-norm' normalises CartPole-v1's env"):
+        nfq_kwargs("nfq-norm", "CartPole-v1")
 
 
 def test_unknown_names_and_envs_are_refused_clearly() -> None:

@@ -159,7 +159,7 @@ def nfq_kwargs(name: str, env_id: str) -> dict[str, Any]:
         ``NFQ`` must be given the env wrapped in ``VecNormalize(env, **vec_normalize_kwargs(...))``
     """
     entry = read_entry(name, env_id)
-    if entry.get("normalize", False) is not False:
+    if vec_normalize_kwargs(entry.get("normalize", False)) is not None:
         raise ValueError(
             f"config {name!r} normalises {env_id}'s env (normalize: {entry['normalize']!r}), which no NFQ argument "
             "does: wrap the env in VecNormalize(env, **vec_normalize_kwargs(entry['normalize'], entry.get('gamma'))) "

@@ -4,6 +4,7 @@ resumability, local pool, Ray), the report, the per-env tuning sweep and the ove
 envs, no mocks.
 """
 
+import dataclasses
 import json
 import os
 import signal
@@ -21,7 +22,7 @@ from torch.nn import functional as F
 
 from benchmarks import configs, main_job, memory_images, overhead, readme_blocks, report, run, scaling, tune_nfq
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
-from sb3_nfq.configs import read_entry, zoo_to_kwargs
+from sb3_nfq.configs import read_entry, vec_normalize_kwargs, zoo_to_kwargs
 
 RESULT_FIELDS = {
     "algo": str,
@@ -635,10 +636,11 @@ def test_every_tuning_candidate_builds_an_nfq_model() -> None:
             assert job.budget == candidate["n_timesteps"]
             model = run.build_sb3_model(job)
             assert isinstance(model, NFQ) and model.gamma == candidate.get("gamma", 1.0)
-            assert (model.get_vec_normalize_env() is not None) == ("normalize" in candidate)
+            normalizes = vec_normalize_kwargs(candidate.get("normalize", False)) is not None
+            assert (model.get_vec_normalize_env() is not None) == normalizes
 
 
-def test_a_config_that_normalizes_trains_and_evaluates_on_normalized_observations() -> None:
+def test_a_config_that_normalizes_trains_on_a_vec_normalize_env_and_records_it() -> None:
     from stable_baselines3.common.vec_env import VecNormalize
 
     th.set_num_threads(1)
@@ -658,7 +660,7 @@ def test_a_config_that_normalizes_trains_and_evaluates_on_normalized_observation
     record = run.run_job(job)
     assert record["effective_hyperparams"]["vec_normalize"] == {"norm_obs": True, "norm_reward": False}
     assert record["config"]["normalize"] == job.kwargs["normalize"]
-    plain = run.run_job(run.Job(**{**job.__dict__, "kwargs": {"gamma": 0.99}}))
+    plain = run.run_job(dataclasses.replace(job, kwargs={"gamma": 0.99}))
     assert "vec_normalize" not in plain["effective_hyperparams"]
 
 

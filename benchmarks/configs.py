@@ -64,6 +64,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-short-rounds",
     "nfq-short-rounds-64",
     "nfq-short-rounds-lr-lin-4e-3",
+    "nfq-short-rounds-lr-lin-4e-3-huber",
 )
 
 #: The config whose budget the reference gets: it runs the same textbook settings.

@@ -36,13 +36,13 @@ from sb3_nfq.memory import make_memory, stored_transitions
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.parameters import (
     HYPERPARAMETERS,
-    LOSSES,
     LossName,
     MemoryName,
     TargetModeName,
     check_action_space,
     check_full_batch_optimizer,
     check_hyperparameters,
+    loss_function,
     reject_dqn_parameters,
 )
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
@@ -84,6 +84,8 @@ class NFQ(OffPolicyAlgorithm):
     :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
+    :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
+        larger errors pull on the fit no harder than this one (1.0: SB3 DQN's ``smooth_l1_loss``); a positive number
     :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from
         ``exploration_initial_eps`` to ``exploration_final_eps``, in (0, 1]
     :param exploration_initial_eps: Initial probability of a random action while collecting
@@ -129,6 +131,7 @@ class NFQ(OffPolicyAlgorithm):
         fit_epochs: int = 1,
         gamma: float = 1.0,
         loss: LossName = "mse",
+        huber_delta: float = 1.0,
         exploration_fraction: float = 0.1,
         exploration_initial_eps: float = 0.5,
         exploration_final_eps: float = 0.5,
@@ -166,6 +169,7 @@ class NFQ(OffPolicyAlgorithm):
             support_multi_env=True,
         )
         self.loss = loss
+        self.huber_delta = huber_delta
         self.memory = memory
         self.round_fraction = round_fraction
         self.target_mode = target_mode
@@ -341,7 +345,7 @@ class NFQ(OffPolicyAlgorithm):
                     known = fixed if fixed is None or indices is None else fixed[indices]
                     self.policy.optimizer.zero_grad()
                     loss_value, q_values, targets = loss_and_gradient(
-                        self.q_net, LOSSES[self.loss], self.gamma, data, known, shared_states
+                        self.q_net, loss_function(self.loss, self.huber_delta), self.gamma, data, known, shared_states
                     )
                     check_loss_is_finite(loss_value, self._n_rounds, iteration + 1, gradient_steps, self.num_timesteps)
                     losses.append(loss_value)

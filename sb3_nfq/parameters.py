@@ -1,6 +1,8 @@
 """NFQ's parameters: their allowed values, and the checks that refuse anything else early, naming the parameter."""
 
+import functools
 import inspect
+from collections.abc import Callable
 from typing import Any, Literal
 
 import torch as th
@@ -9,7 +11,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch.nn import functional as F
 
 #: Regression losses NFQ can fit its Q-values with (the textbook uses MSE).
-LOSSES = {"mse": F.mse_loss, "huber": F.smooth_l1_loss}
+LOSSES = ("huber", "mse")
 LossName = Literal["mse", "huber"]
 #: "fresh": the textbook's batch of one round, discarded after fitting; "growing": the 2005 paper's memory of
 #: every transition so far (up to ``buffer_size``, then the oldest go first).
@@ -78,6 +80,7 @@ def check_hyperparameters(
     fit_epochs: int,
     gamma: float,
     loss: str,
+    huber_delta: float,
     exploration_fraction: float,
     exploration_initial_eps: float,
     exploration_final_eps: float,
@@ -105,6 +108,12 @@ def check_hyperparameters(
         raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {sorted(LOSSES)}, got {loss!r}")
+    if isinstance(huber_delta, bool) or not isinstance(huber_delta, int | float) or not huber_delta > 0:
+        raise ValueError(f"huber_delta must be a positive number, got {huber_delta!r}")
+    if loss != "huber" and huber_delta != 1.0:
+        raise ValueError(
+            f"huber_delta={huber_delta} sets the Huber loss's threshold, which needs loss='huber' (got loss={loss!r})"
+        )
     if memory not in MEMORIES:
         raise ValueError(f"memory must be one of {list(MEMORIES)}, got {memory!r}")
     if round_fraction is not None:
@@ -134,6 +143,18 @@ def check_hyperparameters(
             raise ValueError(f"{name} must be a probability in [0, 1], got {eps!r}")
     if max_grad_norm is not None and not max_grad_norm > 0:
         raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")
+
+
+def loss_function(loss: LossName, huber_delta: float) -> Callable[..., th.Tensor]:
+    """
+    :param loss: ``"mse"`` or ``"huber"``
+    :param huber_delta: with ``"huber"``, the error at which the loss turns from squared to linear (at 1.0 it is
+        ``F.smooth_l1_loss``, SB3 DQN's loss)
+    :return: the regression loss, with ``torch.nn.functional``'s signature
+    """
+    if loss == "huber":
+        return functools.partial(F.huber_loss, delta=float(huber_delta))
+    return F.mse_loss
 
 
 def check_full_batch_optimizer(

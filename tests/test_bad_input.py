@@ -25,6 +25,11 @@ from tests.envs import NaNRewardAfter
         ({"gamma": 1.5}, r"gamma must be in \[0, 1\]"),
         ({"gamma": -0.1}, r"gamma must be in \[0, 1\]"),
         ({"loss": "l1"}, r"loss must be one of \['huber', 'mse'\], got 'l1'"),
+        ({"loss": "huber", "huber_delta": 0.0}, "huber_delta must be a positive number, got 0.0"),
+        (
+            {"huber_delta": 10.0},
+            r"huber_delta=10.0 sets the Huber loss's threshold, which needs loss='huber' \(got loss='mse'\)",
+        ),
         ({"learning_rate": 0.0}, "learning_rate must be a positive number"),
         ({"exploration_initial_eps": 1.2}, r"exploration_initial_eps must be a probability in \[0, 1\]"),
         ({"exploration_final_eps": -0.1}, r"exploration_final_eps must be a probability in \[0, 1\]"),

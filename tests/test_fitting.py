@@ -11,6 +11,7 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_nfq import NFQ
+from sb3_nfq.parameters import loss_function
 from tests.conftest import TransitionRecorder, record_fitting
 
 
@@ -73,6 +74,65 @@ def test_shared_forward_pass_gives_the_textbook_update_on_a_real_round() -> None
     for got, before, hand in zip(model.q_net.parameters(), captured["params"], q_net.parameters(), strict=True):  # type: ignore[call-overload]
         assert hand.grad is not None
         th.testing.assert_close(got.detach(), before - 0.1 * hand.grad, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("huber_delta", [0.5, 1.0])
+def test_huber_delta_is_where_the_loss_of_a_real_round_turns_linear(huber_delta: float) -> None:
+    # One SGD step on a real CartPole round must equal the step of torch's Huber loss with that delta, computed by
+    # hand; the step with the other delta must differ (some TD errors lie between 0.5 and 1), so the test can fail.
+    model = NFQ(
+        "MlpPolicy",
+        "CartPole-v1",
+        train_freq=200,
+        gradient_steps=1,
+        gamma=0.9,
+        learning_rate=0.1,
+        loss="huber",
+        huber_delta=huber_delta,
+        policy_kwargs={"optimizer_class": th.optim.SGD, "net_arch": [16]},
+        seed=0,
+    )
+    captured: dict[str, object] = {}
+
+    class BeforeFit(BaseCallback):
+        def _on_rollout_end(self) -> None:
+            captured["data"] = model._stored_transitions()
+            captured["params"] = [p.detach().clone() for p in model.q_net.parameters()]
+
+        def _on_step(self) -> bool:
+            return True
+
+    model.learn(200, callback=BeforeFit())
+    data = captured["data"]
+    assert isinstance(data, ReplayBufferSamples)
+
+    def hand_step(delta: float) -> list[th.Tensor]:
+        q_net = model.policy.make_q_net()
+        with th.no_grad():
+            for param, value in zip(q_net.parameters(), captured["params"], strict=True):  # type: ignore[call-overload]
+                param.copy_(value)
+            next_q = q_net(data.next_observations).max(dim=1).values.reshape(-1, 1)
+            target = data.rewards + (1 - data.dones) * 0.9 * next_q
+        q_values = th.gather(q_net(data.observations), 1, data.actions.long())
+        errors = (q_values - target).abs()
+        assert ((errors > 0.5) & (errors < 1.0)).any()
+        th.nn.functional.huber_loss(q_values, target, delta=delta).backward()
+        return [before - 0.1 * param.grad for before, param in zip(captured["params"], q_net.parameters(), strict=True)]  # type: ignore[call-overload]
+
+    got = [param.detach() for param in model.q_net.parameters()]
+    for got_param, hand_param in zip(got, hand_step(huber_delta), strict=True):
+        th.testing.assert_close(got_param, hand_param, rtol=1e-5, atol=1e-6)
+    other = hand_step(1.0 if huber_delta == 0.5 else 0.5)
+    assert any(
+        not th.allclose(got_param, other_param, rtol=1e-5, atol=1e-6)
+        for got_param, other_param in zip(got, other, strict=True)
+    )
+
+
+def test_huber_delta_1_is_sb3_dqns_smooth_l1_loss() -> None:
+    generator = th.Generator().manual_seed(0)
+    q_values, targets = th.randn(500, 1, generator=generator) * 3, th.randn(500, 1, generator=generator) * 3
+    assert th.equal(loss_function("huber", 1.0)(q_values, targets), th.nn.functional.smooth_l1_loss(q_values, targets))
 
 
 def test_round_is_discarded_after_fitting() -> None:

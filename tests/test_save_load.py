@@ -16,7 +16,7 @@ from tests.conftest import record_fitting
 
 @pytest.fixture
 def trained(tmp_path: Path) -> tuple[NFQ, Path]:
-    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=3, seed=0)
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=3, loss="huber", huber_delta=5.0, seed=0)
     model.learn(128)
     path = tmp_path / "nfq.zip"
     model.save(path)
@@ -30,7 +30,12 @@ def test_loaded_model_predicts_the_same_actions_and_q_values(trained: tuple[NFQ,
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
     th.testing.assert_close(loaded.q_net(th.as_tensor(obs)), model.q_net(th.as_tensor(obs)))
     assert loaded.q_net is loaded.policy.q_net
-    assert (loaded.train_freq, loaded.gradient_steps, loaded.loss) == (model.train_freq, 3, "mse")
+    assert (loaded.train_freq, loaded.gradient_steps, loaded.loss, loaded.huber_delta) == (
+        model.train_freq,
+        3,
+        "huber",
+        5.0,
+    )
     assert loaded._n_rounds == 2 and loaded._n_updates == 6
 
 

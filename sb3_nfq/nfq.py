@@ -334,6 +334,7 @@ class NFQ(OffPolicyAlgorithm):
         n_transitions = len(batch.rewards)
         self._n_rounds += 1
         shared_states = shared_successor_states(self.q_net, batch, n_envs, batch_size)
+        loss_fn = loss_function(self.loss, self.huber_delta)
 
         losses = []
         for iteration in range(gradient_steps):
@@ -345,7 +346,7 @@ class NFQ(OffPolicyAlgorithm):
                     known = fixed if fixed is None or indices is None else fixed[indices]
                     self.policy.optimizer.zero_grad()
                     loss_value, q_values, targets = loss_and_gradient(
-                        self.q_net, loss_function(self.loss, self.huber_delta), self.gamma, data, known, shared_states
+                        self.q_net, loss_fn, self.gamma, data, known, shared_states
                     )
                     check_loss_is_finite(loss_value, self._n_rounds, iteration + 1, gradient_steps, self.num_timesteps)
                     losses.append(loss_value)

@@ -1,5 +1,9 @@
 """The NFQ loop: rounds of fresh transitions, K full-batch fitted iterations, detached targets, bootstrapping."""
 
+from collections.abc import Callable
+from functools import partial
+from typing import Any
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -8,7 +12,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+from torch.nn import functional as F
 
 from sb3_nfq import NFQ
 from sb3_nfq.parameters import loss_function
@@ -38,20 +43,24 @@ def test_each_round_fits_gradient_steps_times_on_exactly_its_own_transitions(n_e
             np.testing.assert_array_equal(fitted_obs, expected_obs)
 
 
-def test_shared_forward_pass_gives_the_textbook_update_on_a_real_round() -> None:
-    # Real CartPole round with several episode ends: NFQ reads most Q(s') from the Q(s) pass; the update
-    # must equal the textbook's, computed by hand with a separate target pass over every s'.
+def one_sgd_round(env: str | VecEnv, **kwargs: Any) -> tuple[NFQ, ReplayBufferSamples, list[th.Tensor]]:
+    """
+    Train one real 200-transition round with a single plain SGD step (learning rate 0.1, gamma 0.9, a 16-unit net).
+
+    :return: the model after the step, the round's transitions, and the Q-network's parameters before the step
+    """
     model = NFQ(
         "MlpPolicy",
-        make_vec_env("CartPole-v1", n_envs=2, seed=0),
+        env,
         train_freq=200,
         gradient_steps=1,
         gamma=0.9,
         learning_rate=0.1,
         policy_kwargs={"optimizer_class": th.optim.SGD, "net_arch": [16]},
         seed=0,
+        **kwargs,
     )
-    captured: dict[str, object] = {}
+    captured: dict[str, Any] = {}
 
     class BeforeFit(BaseCallback):
         def _on_rollout_end(self) -> None:
@@ -62,71 +71,48 @@ def test_shared_forward_pass_gives_the_textbook_update_on_a_real_round() -> None
             return True
 
     model.learn(200, callback=BeforeFit())
-    data = captured["data"]
-    assert isinstance(data, ReplayBufferSamples) and data.dones.sum() >= 2
+    assert isinstance(captured["data"], ReplayBufferSamples)
+    return model, captured["data"], captured["params"]
+
+
+def hand_step(
+    model: NFQ, data: ReplayBufferSamples, params: list[th.Tensor], loss_fn: Callable[..., th.Tensor]
+) -> list[th.Tensor]:
+    """:return: the parameters after one SGD step (0.1) from ``params`` on ``loss_fn``, targets from a separate pass"""
     q_net = model.policy.make_q_net()
     with th.no_grad():
-        for param, value in zip(q_net.parameters(), captured["params"], strict=True):  # type: ignore[call-overload]
+        for param, value in zip(q_net.parameters(), params, strict=True):
             param.copy_(value)
         target = data.rewards + (1 - data.dones) * 0.9 * q_net(data.next_observations).max(dim=1).values.reshape(-1, 1)
-    loss = th.nn.functional.mse_loss(th.gather(q_net(data.observations), 1, data.actions.long()), target)
-    loss.backward()
-    for got, before, hand in zip(model.q_net.parameters(), captured["params"], q_net.parameters(), strict=True):  # type: ignore[call-overload]
-        assert hand.grad is not None
-        th.testing.assert_close(got.detach(), before - 0.1 * hand.grad, rtol=1e-5, atol=1e-6)
+    loss_fn(th.gather(q_net(data.observations), 1, data.actions.long()), target).backward()
+    after = []
+    for before, param in zip(params, q_net.parameters(), strict=True):
+        assert param.grad is not None
+        after.append(before - 0.1 * param.grad)
+    return after
+
+
+def test_shared_forward_pass_gives_the_textbook_update_on_a_real_round() -> None:
+    # Real CartPole round with several episode ends: NFQ reads most Q(s') from the Q(s) pass; the update
+    # must equal the textbook's, computed by hand with a separate target pass over every s'.
+    model, data, params = one_sgd_round(make_vec_env("CartPole-v1", n_envs=2, seed=0))
+    assert data.dones.sum() >= 2
+    for got, hand in zip(model.q_net.parameters(), hand_step(model, data, params, F.mse_loss), strict=True):
+        th.testing.assert_close(got.detach(), hand, rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("huber_delta", [0.5, 1.0])
 def test_huber_delta_is_where_the_loss_of_a_real_round_turns_linear(huber_delta: float) -> None:
     # One SGD step on a real CartPole round must equal the step of torch's Huber loss with that delta, computed by
-    # hand; the step with the other delta must differ (some TD errors lie between 0.5 and 1), so the test can fail.
-    model = NFQ(
-        "MlpPolicy",
-        "CartPole-v1",
-        train_freq=200,
-        gradient_steps=1,
-        gamma=0.9,
-        learning_rate=0.1,
-        loss="huber",
-        huber_delta=huber_delta,
-        policy_kwargs={"optimizer_class": th.optim.SGD, "net_arch": [16]},
-        seed=0,
-    )
-    captured: dict[str, object] = {}
-
-    class BeforeFit(BaseCallback):
-        def _on_rollout_end(self) -> None:
-            captured["data"] = model._stored_transitions()
-            captured["params"] = [p.detach().clone() for p in model.q_net.parameters()]
-
-        def _on_step(self) -> bool:
-            return True
-
-    model.learn(200, callback=BeforeFit())
-    data = captured["data"]
-    assert isinstance(data, ReplayBufferSamples)
-
-    def hand_step(delta: float) -> list[th.Tensor]:
-        q_net = model.policy.make_q_net()
-        with th.no_grad():
-            for param, value in zip(q_net.parameters(), captured["params"], strict=True):  # type: ignore[call-overload]
-                param.copy_(value)
-            next_q = q_net(data.next_observations).max(dim=1).values.reshape(-1, 1)
-            target = data.rewards + (1 - data.dones) * 0.9 * next_q
-        q_values = th.gather(q_net(data.observations), 1, data.actions.long())
-        errors = (q_values - target).abs()
-        assert ((errors > 0.5) & (errors < 1.0)).any()
-        th.nn.functional.huber_loss(q_values, target, delta=delta).backward()
-        return [before - 0.1 * param.grad for before, param in zip(captured["params"], q_net.parameters(), strict=True)]  # type: ignore[call-overload]
-
+    # hand; the step with the other delta must differ (some TD errors exceed 0.5), so the test can fail.
+    model, data, params = one_sgd_round("CartPole-v1", loss="huber", huber_delta=huber_delta)
     got = [param.detach() for param in model.q_net.parameters()]
-    for got_param, hand_param in zip(got, hand_step(huber_delta), strict=True):
+    for got_param, hand_param in zip(
+        got, hand_step(model, data, params, partial(F.huber_loss, delta=huber_delta)), strict=True
+    ):
         th.testing.assert_close(got_param, hand_param, rtol=1e-5, atol=1e-6)
-    other = hand_step(1.0 if huber_delta == 0.5 else 0.5)
-    assert any(
-        not th.allclose(got_param, other_param, rtol=1e-5, atol=1e-6)
-        for got_param, other_param in zip(got, other, strict=True)
-    )
+    other = hand_step(model, data, params, partial(F.huber_loss, delta=1.0 if huber_delta == 0.5 else 0.5))
+    assert any(not th.allclose(a, b, rtol=1e-5, atol=1e-6) for a, b in zip(got, other, strict=True))
 
 
 def test_huber_delta_1_is_sb3_dqns_smooth_l1_loss() -> None:

@@ -68,6 +68,11 @@ def check_action_space(action_space: spaces.Space | None) -> None:
         )
 
 
+def _is_positive_number(value: object) -> bool:
+    """:return: whether ``value`` is an int or float (not a bool) above 0"""
+    return not isinstance(value, bool) and isinstance(value, int | float) and value > 0
+
+
 def check_hyperparameters(
     learning_rate: float | Schedule,
     train_freq: int | tuple[int, str],
@@ -108,7 +113,7 @@ def check_hyperparameters(
         raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {sorted(LOSSES)}, got {loss!r}")
-    if isinstance(huber_delta, bool) or not isinstance(huber_delta, int | float) or not huber_delta > 0:
+    if not _is_positive_number(huber_delta):
         raise ValueError(f"huber_delta must be a positive number, got {huber_delta!r}")
     if loss != "huber" and huber_delta != 1.0:
         raise ValueError(
@@ -117,7 +122,7 @@ def check_hyperparameters(
     if memory not in MEMORIES:
         raise ValueError(f"memory must be one of {list(MEMORIES)}, got {memory!r}")
     if round_fraction is not None:
-        if isinstance(round_fraction, bool) or not isinstance(round_fraction, int | float) or not round_fraction > 0:
+        if not _is_positive_number(round_fraction):
             raise ValueError(f"round_fraction must be a positive number or None, got {round_fraction!r}")
         if memory != "growing":
             raise ValueError(

@@ -34,6 +34,7 @@ def test_shipped_configs_are_the_named_files_without_the_zoo_file() -> None:
         "nfq-short-rounds-lr-lin-4e-3",
         "nfq-short-rounds-lr-lin-4e-3-huber",
         "nfq-short-rounds-lr-lin-4e-3-huber-10",
+        "nfq-short-rounds-lr-lin-4e-3-huber-5",
         "nfq-tuned",
     ]
 

@@ -15,6 +15,8 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
+from sb3_nfq.parameters import is_positive_int
+
 #: A greedy policy for one observation: observation -> action.
 GreedyAct = Callable[[Any], Any]
 
@@ -32,7 +34,7 @@ class BookCriterion:
     """
 
     def __init__(self, eval_env: gym.Env, threshold: float = 475.0, window: int = 100, seed: int | None = None) -> None:
-        if not isinstance(window, int) or isinstance(window, bool) or window <= 0:
+        if not is_positive_int(window):
             raise ValueError(f"window must be a positive integer (evaluation returns averaged), got {window!r}")
         if not np.isfinite(threshold):
             raise ValueError(f"threshold must be a finite number, got {threshold!r}")

@@ -42,6 +42,7 @@ from sb3_nfq.parameters import (
     check_action_space,
     check_full_batch_optimizer,
     check_hyperparameters,
+    is_positive_int,
     loss_function,
     reject_dqn_parameters,
 )
@@ -395,7 +396,7 @@ class NFQ(OffPolicyAlgorithm):
         """
         dataset.check_spaces(self.observation_space, self.action_space)
         iterations = self.gradient_steps if iterations is None else iterations
-        if not isinstance(iterations, int) or iterations <= 0:
+        if not is_positive_int(iterations):
             raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
         check_full_batch_optimizer(
             self.policy.optimizer, self.batch_size, len(dataset), f"the dataset's {len(dataset)} transitions"

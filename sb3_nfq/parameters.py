@@ -73,6 +73,11 @@ def _is_positive_number(value: object) -> bool:
     return not isinstance(value, bool) and isinstance(value, int | float) and value > 0
 
 
+def is_positive_int(value: object) -> bool:
+    """:return: whether ``value`` is an int (not a bool) above 0"""
+    return isinstance(value, int) and not isinstance(value, bool) and value > 0
+
+
 def check_hyperparameters(
     learning_rate: float | Schedule,
     train_freq: int | tuple[int, str],
@@ -95,7 +100,7 @@ def check_hyperparameters(
     if not callable(learning_rate) and not learning_rate > 0:
         raise ValueError(f"learning_rate must be a positive number or a schedule, got {learning_rate!r}")
     frequency, unit = train_freq if isinstance(train_freq, tuple) else (train_freq, "step")
-    if not isinstance(frequency, int) or isinstance(frequency, bool) or frequency <= 0:
+    if not is_positive_int(frequency):
         raise ValueError(f"train_freq (transitions per round) must be a positive integer, got {frequency!r}")
     if unit not in ("step", "episode"):
         raise ValueError(f"the unit of train_freq must be 'step' or 'episode', got {unit!r}")
@@ -107,7 +112,7 @@ def check_hyperparameters(
     ):
         if value is None and name in ("batch_size", "buffer_size"):
             continue
-        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+        if not is_positive_int(value):
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
     if not 0.0 <= gamma <= 1.0:
         raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")

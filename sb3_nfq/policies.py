@@ -14,6 +14,8 @@ from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.dqn.policies import DQNPolicy, QNetwork
 from torch import nn
 
+from sb3_nfq.parameters import is_positive_int
+
 #: The textbook's hidden layers: obs -> 512 -> 128 -> n_actions.
 TEXTBOOK_NET_ARCH = [512, 128]
 
@@ -57,7 +59,7 @@ class NFQPolicy(DQNPolicy):
     ) -> None:
         if net_arch is None:
             net_arch = [] if features_extractor_class == NatureCNN else list(TEXTBOOK_NET_ARCH)
-        if any(not isinstance(size, int) or size <= 0 for size in net_arch):
+        if not all(is_positive_int(size) for size in net_arch):
             raise ValueError(f"net_arch must be a list of positive layer sizes, got {net_arch!r}")
         super().__init__(
             observation_space,

@@ -20,6 +20,7 @@ from tests.envs import NaNRewardAfter
         ({"train_freq": (4, "minute")}, "unit of train_freq must be 'step' or 'episode'"),
         ({"gradient_steps": 0}, "gradient_steps must be a positive integer"),
         ({"gradient_steps": -1}, "gradient_steps must be a positive integer"),
+        ({"gradient_steps": True}, "gradient_steps must be a positive integer, got True"),
         ({"batch_size": 0}, "batch_size must be a positive integer"),
         ({"buffer_size": -1}, "buffer_size must be a positive integer"),
         ({"gamma": 1.5}, r"gamma must be in \[0, 1\]"),
@@ -36,6 +37,7 @@ from tests.envs import NaNRewardAfter
         ({"exploration_fraction": 0.0}, r"exploration_fraction must be in \(0, 1\]"),
         ({"max_grad_norm": 0.0}, "max_grad_norm must be positive or None"),
         ({"policy_kwargs": {"net_arch": [64, 0]}}, "net_arch must be a list of positive layer sizes"),
+        ({"policy_kwargs": {"net_arch": [64, True]}}, "net_arch must be a list of positive layer sizes"),
     ],
 )
 def test_bad_hyperparameters_are_rejected_at_construction(kwargs: dict[str, Any], message: str) -> None:

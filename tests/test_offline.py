@@ -166,6 +166,8 @@ def test_a_dataset_that_does_not_fit_the_model_is_rejected() -> None:
         NFQ("MlpPolicy", "Acrobot-v1").fit_offline(dataset)
     with pytest.raises(ValueError, match="iterations must be a positive integer"):
         NFQ("MlpPolicy", "CartPole-v1").fit_offline(dataset, iterations=0)
+    with pytest.raises(ValueError, match="iterations must be a positive integer, got True"):
+        NFQ("MlpPolicy", "CartPole-v1").fit_offline(dataset, iterations=True)
 
 
 def test_rprop_offline_with_minibatches_is_refused() -> None:

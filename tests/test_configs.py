@@ -54,18 +54,11 @@ def test_the_zoo_file_is_generated_from_the_recommended_configs() -> None:
         assert entry == {key: value for key, value in read_entry(name, env_id).items() if key != "policy"}
     # The envs RECOMMENDED gives nfq-short-rounds or its successor with a decaying step and the Huber loss (20k memory,
     # refitted every 128 steps): where they stayed solved to the budget in the most seeds
-    for env_id in ("CartPole-v1", "MountainCar-v0", "LunarLander-v3"):
+    short_rounds_envs = ("CartPole-v1", "MountainCar-v0", "LunarLander-v3")
+    for env_id in short_rounds_envs:
         assert (table[env_id]["buffer_size"], table[env_id]["train_freq"]) == (20_000, 128)
-    assert [table[env_id]["learning_rate"] for env_id in ("CartPole-v1", "MountainCar-v0", "LunarLander-v3")] == [
-        0.0005,
-        "lin_0.004",
-        0.0005,
-    ]
-    assert [table[env_id]["loss"] for env_id in ("CartPole-v1", "MountainCar-v0", "LunarLander-v3")] == [
-        "mse",
-        "huber",
-        "mse",
-    ]
+    assert [table[env_id]["learning_rate"] for env_id in short_rounds_envs] == [0.0005, "lin_0.004", 0.0005]
+    assert [table[env_id]["loss"] for env_id in short_rounds_envs] == ["mse", "huber", "mse"]
 
 
 def test_an_entry_becomes_nfq_keyword_arguments() -> None:

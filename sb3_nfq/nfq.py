@@ -80,6 +80,10 @@ class NFQ(OffPolicyAlgorithm):
     :param round_fraction: With ``memory="growing"``, ``f``: a round collects ``max(train_freq, f * M)``
         transitions, ``M`` being what the memory holds when it starts, so the fit per transition collected stays
         about ``gradient_steps / f`` and the total cost grows linearly with the steps; ``None``: ``train_freq``
+    :param round_fraction_offset: With ``round_fraction``, transitions of the memory it does not count: a round
+        collects ``max(train_freq, f * (M - offset))``, so rounds stay ``train_freq`` long until the memory holds
+        ``offset + train_freq / f`` transitions (frequent, cheap refits of a small memory), then lengthen; the fit
+        per transition collected tends to ``gradient_steps / f`` as the memory grows past the offset. 0: all of it
     :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
         ``"fixed_per_iteration"`` (fitted Q-iteration): once per iteration, then ``fit_epochs`` epochs on them
     :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
@@ -128,6 +132,7 @@ class NFQ(OffPolicyAlgorithm):
         buffer_size: int | None = None,
         memory: MemoryName = "fresh",
         round_fraction: float | None = None,
+        round_fraction_offset: int = 0,
         target_mode: TargetModeName = "recompute_every_step",
         fit_epochs: int = 1,
         gamma: float = 1.0,
@@ -173,6 +178,7 @@ class NFQ(OffPolicyAlgorithm):
         self.huber_delta = huber_delta
         self.memory = memory
         self.round_fraction = round_fraction
+        self.round_fraction_offset = round_fraction_offset
         self.target_mode = target_mode
         self.fit_epochs = fit_epochs
         self.exploration_initial_eps = exploration_initial_eps
@@ -288,7 +294,9 @@ class NFQ(OffPolicyAlgorithm):
         """:return: the current round's length, in episodes or ``env.step()`` calls (fixed when it starts)"""
         if self._round_target == 0:
             held = (self.replay_buffer.size() - self._round_steps) * self.n_envs
-            self._round_target = rounds.round_size(length, self.round_fraction, held, self.n_envs)
+            self._round_target = rounds.round_size(
+                length, self.round_fraction, held, self.n_envs, self.round_fraction_offset
+            )
         return self._round_target
 
     def _store_transition(

@@ -86,6 +86,7 @@ def check_hyperparameters(
     buffer_size: int | None,
     memory: str,
     round_fraction: float | None,
+    round_fraction_offset: int,
     target_mode: str,
     fit_epochs: int,
     gamma: float,
@@ -136,6 +137,13 @@ def check_hyperparameters(
             )
         if unit != "step":
             raise ValueError(f"round_fraction needs train_freq counted in steps, got train_freq={train_freq!r}")
+    if type(round_fraction_offset) is not int or round_fraction_offset < 0:  # a bool is not an offset
+        raise ValueError(f"round_fraction_offset must be an integer >= 0, got {round_fraction_offset!r}")
+    if round_fraction_offset and round_fraction is None:
+        raise ValueError(
+            f"round_fraction_offset={round_fraction_offset} sets which transitions round_fraction counts, which "
+            "needs round_fraction (got None)"
+        )
     if target_mode not in TARGET_MODES:
         raise ValueError(f"target_mode must be one of {list(TARGET_MODES)}, got {target_mode!r}")
     if fit_epochs != 1 and target_mode != "fixed_per_iteration":

@@ -40,19 +40,22 @@ def fresh_round_transitions(train_freq: TrainFreq | int | tuple[int, str], n_env
     return None
 
 
-def round_size(length: TrainFreq, round_fraction: float | None, held_transitions: int, n_envs: int) -> int:
+def round_size(
+    length: TrainFreq, round_fraction: float | None, held_transitions: int, n_envs: int, offset: int = 0
+) -> int:
     """
     :param length: the round length ``train_freq`` asks for (:func:`round_length`)
     :param round_fraction: NFQ's ``round_fraction``, or ``None``
     :param held_transitions: transitions the memory holds as the round starts (all envs together)
     :param n_envs: number of envs
+    :param offset: NFQ's ``round_fraction_offset``: transitions of the memory that ``round_fraction`` does not count
     :return: how long the round is, in episodes or ``env.step()`` calls: ``length``, or with ``round_fraction``
-        (rounds counted in steps) the larger of ``length`` and ``round_fraction * held_transitions`` transitions,
-        so that the fit per transition collected stays about ``gradient_steps / round_fraction``
+        (rounds counted in steps) the larger of ``length`` and ``round_fraction * (held_transitions - offset)``
+        transitions, so that the fit per transition collected tends to about ``gradient_steps / round_fraction``
     """
     if round_fraction is None or length.unit == TrainFrequencyUnit.EPISODE:
         return length.frequency
-    return max(length.frequency, math.ceil(round_fraction * held_transitions / n_envs))
+    return max(length.frequency, math.ceil(round_fraction * (held_transitions - offset) / n_envs))
 
 
 def check_round_fits(round_steps: int, memory: ReplayBuffer, buffer_size: int | None, round_number: int) -> None:

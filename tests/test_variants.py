@@ -250,6 +250,16 @@ def test_round_fraction_counts_the_transitions_of_every_env() -> None:
     assert [len(x) for x in fitting.grad_inputs] == [60, 120, 240, 480]
 
 
+def test_round_fraction_offset_keeps_rounds_short_until_the_memory_passes_it(tmp_path: Path) -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", seed=0, round_fraction_offset=128, **GROWING_ROUNDS)
+    fitting = record_fitting(model)
+    model.learn(560)
+    # rounds of max(64, 0.5 * (memory at the round's start - 128)): 64 while the memory holds up to 256, then 96, 144
+    assert [len(x) for x in fitting.grad_inputs] == [64, 128, 192, 256, 320, 416, 560]
+    model.save(tmp_path / "model.zip")
+    assert NFQ.load(tmp_path / "model.zip").round_fraction_offset == 128
+
+
 def test_a_resumed_round_keeps_the_length_it_started_with(tmp_path: Path) -> None:
     whole = NFQ("MlpPolicy", "CartPole-v1", seed=0, device="cpu", **GROWING_ROUNDS)
     whole.learn(648)
@@ -271,6 +281,11 @@ def test_a_resumed_round_keeps_the_length_it_started_with(tmp_path: Path) -> Non
         ({"round_fraction": "10%", "memory": "growing"}, "round_fraction must be a positive number or None"),
         ({"round_fraction": 0.1}, "needs memory='growing'"),
         ({"round_fraction": 0.1, "memory": "growing", "train_freq": (2, "episode")}, "train_freq counted in steps"),
+        *[
+            ({**GROWING_ROUNDS, "round_fraction_offset": offset}, "round_fraction_offset must be an integer >= 0")
+            for offset in (-1, 100.0, True)
+        ],
+        ({"round_fraction_offset": 100}, r"round_fraction_offset=100 .* needs round_fraction \(got None\)"),
     ],
 )
 def test_bad_round_fraction_is_refused(kwargs: dict, message: str) -> None:
@@ -287,6 +302,8 @@ def test_round_arithmetic() -> None:
     assert round_size(TrainFreq(64, steps), 0.5, 1_000, 1) == 500
     assert round_size(TrainFreq(64, steps), 0.5, 999, 2) == 250  # 499.5 transitions: 250 steps of 2 envs
     assert round_size(TrainFreq(3, episodes), 0.5, 1_000, 1) == 3
+    assert round_size(TrainFreq(64, steps), 0.5, 1_000, 1, offset=600) == 200  # half of the 400 past the offset
+    assert round_size(TrainFreq(64, steps), 0.5, 1_000, 1, offset=1_000) == 64
     assert fresh_round_transitions(TrainFreq(1024, steps), 3, "fresh") == 1026
     assert fresh_round_transitions(TrainFreq(1024, steps), 3, "growing") is None
     assert fresh_round_transitions(TrainFreq(3, episodes), 1, "fresh") is None
@@ -302,6 +319,7 @@ def test_an_episode_round_longer_than_the_memory_stops_at_its_first_step_too_man
 def test_textbook_rounds_do_not_lengthen() -> None:
     model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=1, seed=0)
     assert model.round_fraction is None and NFQ("MlpPolicy", "CartPole-v1").round_fraction is None
+    assert model.round_fraction_offset == 0
     fitting = record_fitting(model)
     model.learn(256)
     assert [len(x) for x in fitting.grad_inputs] == [64, 128, 192, 256]

@@ -35,7 +35,8 @@ ZOO_FILE = HYPERPARAMS_DIR / "nfq.yml"
 #: ``default`` serves every other env, ``atari`` every Atari game (the zoo's two special entries).
 RECOMMENDED: dict[str, str] = {
     # Solved 5/5 and still at the threshold at the budget 5/5, where nfq-linear and nfq-capped-10k ended there in 4/5
-    # and nfq-tuned in 3/5; it solves later than they do and trains in more seconds than nfq-linear.
+    # and nfq-tuned and nfq-front-loaded in 3/5; it solves later than they do and trains in more seconds than
+    # nfq-linear.
     "CartPole-v1": "nfq-short-rounds",
     # Solved 5/5 and still at the threshold at the budget 5/5, as nfq-capped, with higher final scores and in a third of
     # its steps; nfq-tuned and nfq-linear ended at the threshold in 4/5.

@@ -1,5 +1,6 @@
 """Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 off-policy algorithm."""
 
+import copy
 import io
 import math
 import pathlib
@@ -87,6 +88,11 @@ class NFQ(OffPolicyAlgorithm):
     :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
         ``"fixed_per_iteration"`` (fitted Q-iteration): once per iteration, then ``fit_epochs`` epochs on them
     :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
+    :param double_q: ``False`` (textbook): the targets bootstrap on ``max_a' Q(s', a')``; ``True`` (needs
+        ``"fixed_per_iteration"``): Double Q-learning's ``Q'(s', argmax_a' Q(s', a'))``, where the network being
+        fitted picks the next action and ``Q'``, the network as it was when it computed the previous iteration's
+        targets (kept across rounds, saved with the model), values it, which curbs the overestimation that taking
+        the max of noisy estimates builds up
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
@@ -135,6 +141,7 @@ class NFQ(OffPolicyAlgorithm):
         round_fraction_offset: int = 0,
         target_mode: TargetModeName = "recompute_every_step",
         fit_epochs: int = 1,
+        double_q: bool = False,
         gamma: float = 1.0,
         loss: LossName = "mse",
         huber_delta: float = 1.0,
@@ -181,6 +188,9 @@ class NFQ(OffPolicyAlgorithm):
         self.round_fraction_offset = round_fraction_offset
         self.target_mode = target_mode
         self.fit_epochs = fit_epochs
+        self.double_q = double_q
+        # With double_q: the network as it was when it computed the previous fitted iteration's targets.
+        self.q_net_lagged: QNetwork | None = None
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
         self.exploration_fraction = exploration_fraction
@@ -215,6 +225,8 @@ class NFQ(OffPolicyAlgorithm):
             self.replay_buffer_class = type(self.replay_buffer)
         super()._setup_model()
         self.q_net = self.policy.q_net
+        if self.double_q:
+            self.q_net_lagged = copy.deepcopy(self.q_net).requires_grad_(False)
         # Rprop needs a round's fit in full batches, which only a fresh memory of step rounds bounds.
         fit_size = rounds.fresh_round_transitions(self.train_freq, self.n_envs, self.memory)
         check_full_batch_optimizer(
@@ -348,7 +360,7 @@ class NFQ(OffPolicyAlgorithm):
         losses = []
         for iteration in range(gradient_steps):
             # Classic fitted Q-iteration regresses on targets fixed for the iteration; the textbook recomputes them.
-            fixed = td_targets(self.q_net, batch, self.gamma) if self.target_mode == "fixed_per_iteration" else None
+            fixed = self._fixed_targets(batch) if self.target_mode == "fixed_per_iteration" else None
             for _ in range(self.fit_epochs):
                 for indices in minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
                     data = take(batch, indices)
@@ -370,6 +382,18 @@ class NFQ(OffPolicyAlgorithm):
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
+
+    def _fixed_targets(self, batch: ReplayBufferSamples) -> th.Tensor:
+        """
+        :param batch: the transitions of the fit
+        :return: a fitted iteration's targets; with ``double_q``, valued by the network that computed the previous
+            iteration's, which then takes the current network's weights for the next iteration
+        """
+        if self.q_net_lagged is None:
+            return td_targets(self.q_net, batch, self.gamma)
+        targets = td_targets(self.q_net, batch, self.gamma, evaluator=self.q_net_lagged)
+        self.q_net_lagged.load_state_dict(self.q_net.state_dict())
+        return targets
 
     @classmethod
     def for_dataset(
@@ -501,7 +525,7 @@ class NFQ(OffPolicyAlgorithm):
         )
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "q_net"]
+        return [*super()._excluded_save_params(), "q_net", "q_net_lagged"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        return ["policy", "policy.optimizer"], []
+        return ["policy", "policy.optimizer", *(["q_net_lagged"] if self.double_q else [])], []

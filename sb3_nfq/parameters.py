@@ -89,6 +89,7 @@ def check_hyperparameters(
     round_fraction_offset: int,
     target_mode: str,
     fit_epochs: int,
+    double_q: bool,
     gamma: float,
     loss: str,
     huber_delta: float,
@@ -150,6 +151,13 @@ def check_hyperparameters(
         raise ValueError(
             f"fit_epochs={fit_epochs} needs target_mode='fixed_per_iteration': with 'recompute_every_step' "
             "every step already uses fresh targets, so raise gradient_steps instead"
+        )
+    if not isinstance(double_q, bool):
+        raise ValueError(f"double_q must be True or False, got {double_q!r}")
+    if double_q and target_mode != "fixed_per_iteration":
+        raise ValueError(
+            f"double_q=True values the next state with the network as it was one fitted iteration earlier, which needs "
+            f"target_mode='fixed_per_iteration' (got target_mode={target_mode!r})"
         )
     if not 0.0 < exploration_fraction <= 1.0:
         raise ValueError(f"exploration_fraction must be in (0, 1], got {exploration_fraction!r}")

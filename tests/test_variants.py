@@ -59,7 +59,7 @@ def test_growing_memory_with_minibatches_covers_the_whole_memory_each_iteration(
     np.testing.assert_array_equal(np.sort(last_iteration, axis=0), np.sort(all_obs, axis=0))
 
 
-def _sgd_model(target_mode: str, fit_epochs: int) -> NFQ:
+def _sgd_model(target_mode: str, fit_epochs: int, double_q: bool = False) -> NFQ:
     model = NFQ(
         "MlpPolicy",
         "CartPole-v1",
@@ -67,6 +67,7 @@ def _sgd_model(target_mode: str, fit_epochs: int) -> NFQ:
         gamma=0.9,
         target_mode=target_mode,  # type: ignore[arg-type]
         fit_epochs=fit_epochs,
+        double_q=double_q,
         seed=3,
         learning_rate=0.5,
         policy_kwargs={"optimizer_class": th.optim.SGD, "net_arch": [8]},
@@ -118,12 +119,59 @@ def test_fixed_targets_are_computed_once_per_iteration_and_regressed_on_for_fit_
 
 def test_textbook_targets_are_recomputed_before_every_step() -> None:
     model = _sgd_model("recompute_every_step", fit_epochs=1)
+    assert model.double_q is False and NFQ("MlpPolicy", "CartPole-v1").double_q is False
     recomputed = _by_hand(model, 3, recompute=True)
     fitting = record_fitting(model)
     model.train(gradient_steps=3)
     assert fitting.no_grad_batch_sizes == [4, 4, 4]
     for got, expected in zip(model.q_net.parameters(), recomputed, strict=True):
         th.testing.assert_close(got.detach(), expected)
+
+
+def test_double_q_values_the_picked_action_with_the_network_of_the_previous_iteration() -> None:
+    model = _sgd_model("fixed_per_iteration", fit_epochs=1)
+    double = _sgd_model("fixed_per_iteration", fit_epochs=1, double_q=True)  # the same network and memory
+    data = model._stored_transitions()
+    q_net = model.policy.make_q_net()
+    q_net.load_state_dict(model.q_net.state_dict())
+    optimizer = th.optim.SGD(q_net.parameters(), lr=0.5)
+    lagged = {key: value.clone() for key, value in q_net.state_dict().items()}
+    evaluator = model.policy.make_q_net()
+    for _ in range(3):
+        evaluator.load_state_dict(lagged)
+        with th.no_grad():
+            picked = q_net(data.next_observations).argmax(dim=1, keepdim=True)
+            target = data.rewards + model.gamma * th.gather(evaluator(data.next_observations), 1, picked)
+        lagged = {key: value.clone() for key, value in q_net.state_dict().items()}
+        loss = th.nn.functional.mse_loss(th.gather(q_net(data.observations), 1, data.actions.long()), target)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    double.train(gradient_steps=3)
+    model.train(gradient_steps=3)
+    for got, expected in zip(double.q_net.parameters(), q_net.parameters(), strict=True):
+        th.testing.assert_close(got.detach(), expected.detach())
+    assert double.q_net_lagged is not None
+    for key, value in double.q_net_lagged.state_dict().items():
+        th.testing.assert_close(value, lagged[key])  # the network after two steps values the next iteration
+    assert any(not th.allclose(a, b) for a, b in zip(model.q_net.parameters(), q_net.parameters(), strict=True))
+
+
+def test_double_q_keeps_its_lagged_network_across_save_and_load(tmp_path: Path) -> None:
+    kwargs: dict[str, Any] = {"memory": "growing", "target_mode": "fixed_per_iteration", "train_freq": 64}
+    model = NFQ("MlpPolicy", "CartPole-v1", double_q=True, gradient_steps=2, seed=0, **kwargs)
+    model.learn(128)
+    assert set(model.get_parameters()) == {"policy", "policy.optimizer", "q_net_lagged"}
+    model.save(tmp_path / "model.zip")
+    loaded = NFQ.load(tmp_path / "model.zip")
+    assert loaded.double_q is True and loaded.q_net_lagged is not None and model.q_net_lagged is not None
+    lagged = list(loaded.q_net_lagged.parameters())
+    assert all(th.equal(a, b) for a, b in zip(lagged, model.q_net_lagged.parameters(), strict=True))
+    assert any(not th.equal(a, b) for a, b in zip(lagged, loaded.q_net.parameters(), strict=True))
+    plain = NFQ("MlpPolicy", "CartPole-v1", seed=0, **kwargs)
+    assert plain.double_q is False and plain.q_net_lagged is None
+    assert set(plain.get_parameters()) == {"policy", "policy.optimizer"}
 
 
 def test_fixed_targets_with_minibatches_use_each_transitions_own_target() -> None:
@@ -197,6 +245,8 @@ def test_rprop_with_a_batch_size_that_covers_the_whole_fresh_round_takes_full_ba
         ({"target_mode": "fixed"}, r"target_mode must be one of \['recompute_every_step', 'fixed_per_iteration'\]"),
         ({"fit_epochs": 0}, "fit_epochs must be a positive integer"),
         ({"fit_epochs": 3}, "fit_epochs=3 needs target_mode='fixed_per_iteration'"),
+        ({"double_q": True}, r"double_q=True .* needs target_mode='fixed_per_iteration' \(got target_mode="),
+        ({"double_q": 1, "target_mode": "fixed_per_iteration"}, "double_q must be True or False, got 1"),
         ({"memory": "growing", "buffer_size": 100}, "buffer_size=100 is smaller than one round of 1024"),
     ],
 )

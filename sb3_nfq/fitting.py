@@ -99,42 +99,42 @@ def take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferS
     )
 
 
-def next_state_values(q_net: th.nn.Module, evaluator: th.nn.Module | None, next_observations: Any) -> th.Tensor:
+def next_state_values(q_net: th.nn.Module, picker: th.nn.Module | None, next_observations: Any) -> th.Tensor:
     """
     :param q_net: the Q-network
-    :param evaluator: ``None``: ``max_a' Q(s', a')``; else a second network that values the action ``q_net`` picks
+    :param picker: ``None``: ``max_a' Q(s', a')``; else a second network that picks the action ``q_net`` values
         (Double Q-learning's target)
     :param next_observations: the next states ``s'``
     :return: the value of each next state, shape ``(n,)``
     """
     next_q_values = q_net(next_observations)
-    if evaluator is None:
+    if picker is None:
         return next_q_values.max(dim=1).values
-    return evaluator(next_observations).gather(1, next_q_values.argmax(dim=1, keepdim=True)).squeeze(1)
+    return next_q_values.gather(1, picker(next_observations).argmax(dim=1, keepdim=True)).squeeze(1)
 
 
 def td_targets(
-    q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float, evaluator: th.nn.Module | None = None
+    q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float, picker: th.nn.Module | None = None
 ) -> th.Tensor:
     """
     :param q_net: the Q-network
     :param data: transitions
     :param gamma: the discount factor
-    :param evaluator: ``None``: the targets bootstrap on ``max_a' Q(s', a')``; else on
-        ``evaluator(s', argmax_a' Q(s', a'))`` (Double Q-learning: ``q_net`` picks the next action, ``evaluator``
-        values it, so that an action picked because ``q_net`` overrates it is not valued by that same overrating)
+    :param picker: ``None``: the targets bootstrap on ``max_a' Q(s', a')``; else on ``Q(s', argmax_a' P(s', a'))``
+        (Double Q-learning: ``picker`` P picks the next action, ``q_net`` values it, so that an action is not valued
+        by the same errors that made it look best)
     :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` (or its Double Q-learning form) with the networks in
         eval mode (no Dropout, BatchNorm's running statistics used and left as they are), as a constant (no graph),
         shape ``(n, 1)``; computed in chunks so that a large memory fits in memory.
     """
-    with th.no_grad(), eval_mode(q_net), eval_mode(q_net if evaluator is None else evaluator):
+    with th.no_grad(), eval_mode(q_net), eval_mode(q_net if picker is None else picker):
         n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.next_observations)
         if n_transitions <= chunk_rows:
-            next_values = next_state_values(q_net, evaluator, data.next_observations)
+            next_values = next_state_values(q_net, picker, data.next_observations)
         else:
             chunks = th.arange(n_transitions, device=data.rewards.device).split(chunk_rows)
             next_values = th.cat(
-                [next_state_values(q_net, evaluator, take_rows(data.next_observations, rows)) for rows in chunks]
+                [next_state_values(q_net, picker, take_rows(data.next_observations, rows)) for rows in chunks]
             )
         return data.rewards + (1 - data.dones) * gamma * next_values.reshape(-1, 1)
 

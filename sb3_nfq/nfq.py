@@ -89,10 +89,10 @@ class NFQ(OffPolicyAlgorithm):
         ``"fixed_per_iteration"`` (fitted Q-iteration): once per iteration, then ``fit_epochs`` epochs on them
     :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
     :param double_q: ``False`` (textbook): the targets bootstrap on ``max_a' Q(s', a')``; ``True`` (needs
-        ``"fixed_per_iteration"``): Double Q-learning's ``Q'(s', argmax_a' Q(s', a'))``, where the network being
-        fitted picks the next action and ``Q'``, the network as it was when it computed the previous iteration's
-        targets (kept across rounds, saved with the model), values it, which curbs the overestimation that taking
-        the max of noisy estimates builds up
+        ``"fixed_per_iteration"``): Double Q-learning's ``Q(s', argmax_a' Q'(s', a'))``, where ``Q'``, the network as
+        it was when it computed the previous iteration's targets (kept across rounds, saved with the model), picks the
+        next action and the network being fitted values it, which curbs the overestimation that taking the max of
+        noisy estimates builds up
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
@@ -386,12 +386,12 @@ class NFQ(OffPolicyAlgorithm):
     def _fixed_targets(self, batch: ReplayBufferSamples) -> th.Tensor:
         """
         :param batch: the transitions of the fit
-        :return: a fitted iteration's targets; with ``double_q``, valued by the network that computed the previous
-            iteration's, which then takes the current network's weights for the next iteration
+        :return: a fitted iteration's targets; with ``double_q``, bootstrapping on the actions picked by the network
+            that computed the previous iteration's, which then takes the current network's weights
         """
         if self.q_net_lagged is None:
             return td_targets(self.q_net, batch, self.gamma)
-        targets = td_targets(self.q_net, batch, self.gamma, evaluator=self.q_net_lagged)
+        targets = td_targets(self.q_net, batch, self.gamma, picker=self.q_net_lagged)
         self.q_net_lagged.load_state_dict(self.q_net.state_dict())
         return targets
 

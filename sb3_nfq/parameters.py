@@ -156,7 +156,7 @@ def check_hyperparameters(
         raise ValueError(f"double_q must be True or False, got {double_q!r}")
     if double_q and target_mode != "fixed_per_iteration":
         raise ValueError(
-            f"double_q=True values the next state with the network as it was one fitted iteration earlier, which needs "
+            f"double_q=True picks the next action with the network as it was one fitted iteration earlier, which needs "
             f"target_mode='fixed_per_iteration' (got target_mode={target_mode!r})"
         )
     if not 0.0 < exploration_fraction <= 1.0:

@@ -128,7 +128,7 @@ def test_textbook_targets_are_recomputed_before_every_step() -> None:
         th.testing.assert_close(got.detach(), expected)
 
 
-def test_double_q_values_the_picked_action_with_the_network_of_the_previous_iteration() -> None:
+def test_double_q_values_the_action_the_network_of_the_previous_iteration_picks() -> None:
     model = _sgd_model("fixed_per_iteration", fit_epochs=1)
     double = _sgd_model("fixed_per_iteration", fit_epochs=1, double_q=True)  # the same network and memory
     data = model._stored_transitions()
@@ -136,25 +136,25 @@ def test_double_q_values_the_picked_action_with_the_network_of_the_previous_iter
     q_net.load_state_dict(model.q_net.state_dict())
     optimizer = th.optim.SGD(q_net.parameters(), lr=0.5)
     lagged = {key: value.clone() for key, value in q_net.state_dict().items()}
-    evaluator = model.policy.make_q_net()
-    for _ in range(3):
-        evaluator.load_state_dict(lagged)
+    picker = model.policy.make_q_net()
+    for _ in range(5):  # enough iterations for the two networks to pick differently somewhere
+        picker.load_state_dict(lagged)
         with th.no_grad():
-            picked = q_net(data.next_observations).argmax(dim=1, keepdim=True)
-            target = data.rewards + model.gamma * th.gather(evaluator(data.next_observations), 1, picked)
+            picked = picker(data.next_observations).argmax(dim=1, keepdim=True)
+            target = data.rewards + model.gamma * th.gather(q_net(data.next_observations), 1, picked)
         lagged = {key: value.clone() for key, value in q_net.state_dict().items()}
         loss = th.nn.functional.mse_loss(th.gather(q_net(data.observations), 1, data.actions.long()), target)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
 
-    double.train(gradient_steps=3)
-    model.train(gradient_steps=3)
+    double.train(gradient_steps=5)
+    model.train(gradient_steps=5)
     for got, expected in zip(double.q_net.parameters(), q_net.parameters(), strict=True):
         th.testing.assert_close(got.detach(), expected.detach())
     assert double.q_net_lagged is not None
     for key, value in double.q_net_lagged.state_dict().items():
-        th.testing.assert_close(value, lagged[key])  # the network after two steps values the next iteration
+        th.testing.assert_close(value, lagged[key])  # the network after four steps picks next
     assert any(not th.allclose(a, b) for a, b in zip(model.q_net.parameters(), q_net.parameters(), strict=True))
 
 

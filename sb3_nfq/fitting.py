@@ -139,6 +139,22 @@ def td_targets(
         return data.rewards + (1 - data.dones) * gamma * next_values.reshape(-1, 1)
 
 
+def step_back(module: th.nn.Module, start: dict[str, th.Tensor], step_size: float) -> None:
+    """
+    Move ``module``'s weights back towards ``start``, keeping ``step_size`` of the change since: ``start + step_size *
+    (now - start)`` for every floating-point entry of its state (integer buffers, such as BatchNorm's batch count,
+    stay as they are).
+
+    :param module: the network, after a fit
+    :param start: its ``state_dict()`` before the fit (a copy)
+    :param step_size: the fraction of the change to keep, in (0, 1]
+    """
+    with th.no_grad():
+        for name, value in module.state_dict().items():
+            if value.is_floating_point():
+                value.copy_(th.lerp(start[name], value, step_size))
+
+
 def states_and_successors(batch: ReplayBufferSamples, n_envs: int) -> tuple[th.Tensor, th.Tensor] | None:
     """
     In a round, the next state of a transition is usually the state of the same env's next transition (``n_envs``

@@ -30,6 +30,7 @@ from sb3_nfq.fitting import (
     loss_and_gradient,
     minibatch_indices,
     shared_successor_states,
+    step_back,
     take,
     td_targets,
 )
@@ -93,6 +94,10 @@ class NFQ(OffPolicyAlgorithm):
         it was when it computed the previous iteration's targets (kept across rounds, saved with the model), picks the
         next action and the network being fitted values it, which curbs the overestimation that taking the max of
         noisy estimates builds up
+    :param round_step_size: Fraction of the change a round's fit made to the network's weights that the network keeps
+        (Lookahead's step size, with a round's fit as the inner steps): 1.0 (textbook) keeps all of it; below 1, each
+        round moves the network only part of the way from where the round started, damping how far one round can
+        swing the policy; in (0, 1]. Online rounds only (not :meth:`fit_offline`)
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
@@ -142,6 +147,7 @@ class NFQ(OffPolicyAlgorithm):
         target_mode: TargetModeName = "recompute_every_step",
         fit_epochs: int = 1,
         double_q: bool = False,
+        round_step_size: float = 1.0,
         gamma: float = 1.0,
         loss: LossName = "mse",
         huber_delta: float = 1.0,
@@ -189,6 +195,7 @@ class NFQ(OffPolicyAlgorithm):
         self.target_mode = target_mode
         self.fit_epochs = fit_epochs
         self.double_q = double_q
+        self.round_step_size = round_step_size
         # With double_q: the network as it was when it computed the previous fitted iteration's targets.
         self.q_net_lagged: QNetwork | None = None
         self.exploration_initial_eps = exploration_initial_eps
@@ -331,7 +338,8 @@ class NFQ(OffPolicyAlgorithm):
 
     def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
         """
-        Run ``gradient_steps`` fitted iterations, each covering every transition in the memory.
+        Run ``gradient_steps`` fitted iterations, each covering every transition in the memory (then, with
+        ``round_step_size`` below 1, keep only that fraction of the change they made).
 
         :param gradient_steps: Number of fitted iterations (the book's K)
         :param batch_size: ``None``: one full-batch step per epoch; else shuffled mini-batches of this size
@@ -341,7 +349,10 @@ class NFQ(OffPolicyAlgorithm):
                 "NFQ's memory is empty: there is nothing to fit. Collect transitions with learn(), load them with "
                 "load_replay_buffer(), or fit a dataset with fit_offline()."
             )
+        start = None if self.round_step_size == 1 else copy.deepcopy(self.q_net.state_dict())
         self._fit(self._stored_transitions(), self.replay_buffer.n_envs, gradient_steps, batch_size)
+        if start is not None:
+            step_back(self.q_net, start, self.round_step_size)
 
     def _fit(self, batch: ReplayBufferSamples, n_envs: int, gradient_steps: int, batch_size: int | None) -> None:
         """

@@ -90,6 +90,7 @@ def check_hyperparameters(
     target_mode: str,
     fit_epochs: int,
     double_q: bool,
+    round_step_size: float,
     gamma: float,
     loss: str,
     huber_delta: float,
@@ -159,6 +160,8 @@ def check_hyperparameters(
             f"double_q=True picks the next action with the network as it was one fitted iteration earlier, which needs "
             f"target_mode='fixed_per_iteration' (got target_mode={target_mode!r})"
         )
+    if not _is_positive_number(round_step_size) or round_step_size > 1:
+        raise ValueError(f"round_step_size must be a number in (0, 1], got {round_step_size!r}")
     if not 0.0 < exploration_fraction <= 1.0:
         raise ValueError(f"exploration_fraction must be in (0, 1], got {exploration_fraction!r}")
     for name, eps in (

@@ -12,7 +12,7 @@ from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
-from sb3_nfq import NFQ
+from sb3_nfq import NFQ, TransitionDataset
 from sb3_nfq.rounds import fresh_round_transitions, round_length, round_size
 from tests.conftest import TransitionRecorder, record_fitting
 
@@ -59,7 +59,7 @@ def test_growing_memory_with_minibatches_covers_the_whole_memory_each_iteration(
     np.testing.assert_array_equal(np.sort(last_iteration, axis=0), np.sort(all_obs, axis=0))
 
 
-def _sgd_model(target_mode: str, fit_epochs: int, double_q: bool = False) -> NFQ:
+def _sgd_model(target_mode: str, fit_epochs: int, **kwargs: Any) -> NFQ:
     model = NFQ(
         "MlpPolicy",
         "CartPole-v1",
@@ -67,10 +67,10 @@ def _sgd_model(target_mode: str, fit_epochs: int, double_q: bool = False) -> NFQ
         gamma=0.9,
         target_mode=target_mode,  # type: ignore[arg-type]
         fit_epochs=fit_epochs,
-        double_q=double_q,
         seed=3,
         learning_rate=0.5,
         policy_kwargs={"optimizer_class": th.optim.SGD, "net_arch": [8]},
+        **kwargs,
     )
     model.set_logger(Logger(folder=None, output_formats=[]))
     rng = np.random.default_rng(1)
@@ -174,6 +174,30 @@ def test_double_q_keeps_its_lagged_network_across_save_and_load(tmp_path: Path) 
     assert set(plain.get_parameters()) == {"policy", "policy.optimizer"}
 
 
+def test_round_step_size_keeps_that_fraction_of_each_rounds_change() -> None:
+    whole = _sgd_model("recompute_every_step", fit_epochs=1)
+    damped = _sgd_model("recompute_every_step", fit_epochs=1, round_step_size=0.25)  # the same network and memory
+    start = [p.detach().clone() for p in whole.q_net.parameters()]
+    whole.train(gradient_steps=3)
+    damped.train(gradient_steps=3)
+    for got, before, fitted in zip(damped.q_net.parameters(), start, whole.q_net.parameters(), strict=True):
+        th.testing.assert_close(got.detach(), before + 0.25 * (fitted.detach() - before))
+    assert any(not th.allclose(a, b) for a, b in zip(start, whole.q_net.parameters(), strict=True))
+    assert whole.round_step_size == 1.0 and NFQ("MlpPolicy", "CartPole-v1").round_step_size == 1.0
+
+
+def test_round_step_size_leaves_offline_fits_whole_and_survives_save_and_load(tmp_path: Path) -> None:
+    source = _sgd_model("recompute_every_step", fit_epochs=1)
+    dataset = TransitionDataset.from_replay_buffer(source.replay_buffer)
+    whole = NFQ.for_dataset("MlpPolicy", dataset, gradient_steps=3, seed=0)
+    damped = NFQ.for_dataset("MlpPolicy", dataset, gradient_steps=3, seed=0, round_step_size=0.5)
+    whole.fit_offline(dataset)
+    damped.fit_offline(dataset)
+    assert all(th.equal(a, b) for a, b in zip(whole.q_net.parameters(), damped.q_net.parameters(), strict=True))
+    damped.save(tmp_path / "model.zip")
+    assert NFQ.load(tmp_path / "model.zip").round_step_size == 0.5
+
+
 def test_fixed_targets_with_minibatches_use_each_transitions_own_target() -> None:
     model = NFQ(
         "MlpPolicy",
@@ -247,6 +271,10 @@ def test_rprop_with_a_batch_size_that_covers_the_whole_fresh_round_takes_full_ba
         ({"fit_epochs": 3}, "fit_epochs=3 needs target_mode='fixed_per_iteration'"),
         ({"double_q": True}, r"double_q=True .* needs target_mode='fixed_per_iteration' \(got target_mode="),
         ({"double_q": 1, "target_mode": "fixed_per_iteration"}, "double_q must be True or False, got 1"),
+        *[
+            ({"round_step_size": value}, r"round_step_size must be a number in \(0, 1\], got")
+            for value in (0, 1.5, -0.5, True, "0.5")
+        ],
         ({"memory": "growing", "buffer_size": 100}, "buffer_size=100 is smaller than one round of 1024"),
     ],
 )

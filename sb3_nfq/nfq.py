@@ -92,7 +92,7 @@ class NFQ(OffPolicyAlgorithm):
     :param double_q: ``False`` (textbook): the targets bootstrap on ``max_a' Q(s', a')``; ``True`` (needs
         ``"fixed_per_iteration"``): Double Q-learning's ``Q(s', argmax_a' Q'(s', a'))``, where ``Q'``, the network as
         it was when it computed the previous iteration's targets (kept across rounds, saved with the model), picks the
-        next action and the network being fitted values it, which curbs the overestimation that taking the max of
+        next action and the network being fitted values it, meant to curb the overestimation that taking the max of
         noisy estimates builds up
     :param round_step_size: Fraction of the change a round's fit made to the network's weights that the network keeps
         (Lookahead's step size, with a round's fit as the inner steps): 1.0 (textbook) keeps all of it; below 1, each

@@ -127,7 +127,8 @@ def td_targets(
         eval mode (no Dropout, BatchNorm's running statistics used and left as they are), as a constant (no graph),
         shape ``(n, 1)``; computed in chunks so that a large memory fits in memory.
     """
-    with th.no_grad(), eval_mode(q_net), eval_mode(q_net if picker is None else picker):
+    picker_mode = contextlib.nullcontext() if picker is None else eval_mode(picker)
+    with th.no_grad(), eval_mode(q_net), picker_mode:
         n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.next_observations)
         if n_transitions <= chunk_rows:
             next_values = next_state_values(q_net, picker, data.next_observations)

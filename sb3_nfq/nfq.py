@@ -98,6 +98,13 @@ class NFQ(OffPolicyAlgorithm):
         (Lookahead's step size, with a round's fit as the inner steps): 1.0 (textbook) keeps all of it; below 1, each
         round moves the network only part of the way from where the round started, damping how far one round can
         swing the policy; in (0, 1]. Online rounds only (not :meth:`fit_offline`)
+    :param keep_best: ``False`` (textbook): each round's fit starts from the network the previous one left; ``True``:
+        the network a fit leaves is judged by the mean return of the training episodes that end while it collects (no
+        extra env steps; a ``Monitor`` wrapper's returns, so epsilon-greedy ones). One that scores below the best
+        score so far goes back to the best-scoring weights, before the next fit and at the end of :meth:`learn`, so
+        that one unlucky fit does not carry on, and training ends with the best weights; a network no episode ended
+        under (a round shorter than an episode, or a fit at the very end of ``learn()``) is kept unjudged. The memory
+        keeps every transition either way. The best weights are saved with the model
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
@@ -148,6 +155,7 @@ class NFQ(OffPolicyAlgorithm):
         fit_epochs: int = 1,
         double_q: bool = False,
         round_step_size: float = 1.0,
+        keep_best: bool = False,
         gamma: float = 1.0,
         loss: LossName = "mse",
         huber_delta: float = 1.0,
@@ -198,6 +206,13 @@ class NFQ(OffPolicyAlgorithm):
         self.round_step_size = round_step_size
         # With double_q: the network as it was when it computed the previous fitted iteration's targets.
         self.q_net_lagged: QNetwork | None = None
+        self.keep_best = keep_best
+        # With keep_best: the best-scoring weights, their score, and the returns of the episodes that ended since the
+        # network last changed (a fit or a roll-back).
+        self.q_net_best: QNetwork | None = None
+        self._best_score: float | None = None
+        self._returns_since_fit: list[float] = []
+        self._n_rollbacks = 0
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
         self.exploration_fraction = exploration_fraction
@@ -234,6 +249,8 @@ class NFQ(OffPolicyAlgorithm):
         self.q_net = self.policy.q_net
         if self.double_q:
             self.q_net_lagged = copy.deepcopy(self.q_net).requires_grad_(False)
+        if self.keep_best:
+            self.q_net_best = copy.deepcopy(self.q_net).requires_grad_(False)
         # Rprop needs a round's fit in full batches, which only a fresh memory of step rounds bounds.
         fit_size = rounds.fresh_round_transitions(self.train_freq, self.n_envs, self.memory)
         check_full_batch_optimizer(
@@ -275,11 +292,14 @@ class NFQ(OffPolicyAlgorithm):
         )
         callback.on_training_start(locals(), globals())
         assert self.env is not None
+        if self.keep_best:
+            rounds.check_episode_returns(self.env)
 
         length = rounds.round_length(self.train_freq, self.n_envs)
         by_episode = length.unit == TrainFrequencyUnit.EPISODE
         while True:
             if (self._round_episodes if by_episode else self._round_steps) >= self._round_size(length):
+                self._judge_network()
                 # 2. Fit: gradient_steps fitted iterations on the whole memory.
                 self.train(gradient_steps=self.gradient_steps, batch_size=self.batch_size)
                 self._round_steps = self._round_episodes = self._round_target = 0
@@ -306,6 +326,7 @@ class NFQ(OffPolicyAlgorithm):
                 rounds.store_interrupted_step(self, callback)
                 break  # a complete round is fitted by the next learn(), before it collects
 
+        self._judge_network()
         callback.on_training_end()
         return self
 
@@ -317,6 +338,24 @@ class NFQ(OffPolicyAlgorithm):
                 length, self.round_fraction, held, self.n_envs, self.round_fraction_offset
             )
         return self._round_target
+
+    def _judge_network(self) -> None:
+        """
+        With ``keep_best``: score the network by the returns of the episodes that ended since it last changed (if
+        any); a new best score keeps its weights as the best, a lower one puts the best weights back.
+        """
+        if self.q_net_best is None or not self._returns_since_fit:
+            return
+        score = float(np.mean(self._returns_since_fit))
+        self._returns_since_fit = []
+        if self._best_score is None or score >= self._best_score:
+            self._best_score = score
+            self.q_net_best.load_state_dict(self.q_net.state_dict())
+        else:
+            self.q_net.load_state_dict(self.q_net_best.state_dict())
+            self._n_rollbacks += 1
+        self.logger.record("train/best_score", self._best_score)
+        self.logger.record("train/n_rollbacks", self._n_rollbacks)
 
     def _store_transition(
         self,
@@ -334,6 +373,9 @@ class NFQ(OffPolicyAlgorithm):
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
         self._round_steps += 1
         self._round_episodes += int(np.sum(dones))
+        if self.keep_best:
+            ended = [info for info, done in zip(infos, dones, strict=True) if done]
+            self._returns_since_fit += [float(info["episode"]["r"]) for info in ended]
         rounds.check_round_fits(self._round_steps, replay_buffer, self.buffer_size, self._n_rounds + 1)
 
     def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
@@ -536,7 +578,8 @@ class NFQ(OffPolicyAlgorithm):
         )
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "q_net", "q_net_lagged"]
+        return [*super()._excluded_save_params(), "q_net", "q_net_lagged", "q_net_best"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        return ["policy", "policy.optimizer", *(["q_net_lagged"] if self.double_q else [])], []
+        extra = [name for name, used in (("q_net_lagged", self.double_q), ("q_net_best", self.keep_best)) if used]
+        return ["policy", "policy.optimizer", *extra], []

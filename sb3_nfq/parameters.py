@@ -91,6 +91,7 @@ def check_hyperparameters(
     fit_epochs: int,
     double_q: bool,
     round_step_size: float,
+    keep_best: bool,
     gamma: float,
     loss: str,
     huber_delta: float,
@@ -162,6 +163,8 @@ def check_hyperparameters(
         )
     if not _is_positive_number(round_step_size) or round_step_size > 1:
         raise ValueError(f"round_step_size must be a number in (0, 1], got {round_step_size!r}")
+    if not isinstance(keep_best, bool):
+        raise ValueError(f"keep_best must be True or False, got {keep_best!r}")
     if not 0.0 < exploration_fraction <= 1.0:
         raise ValueError(f"exploration_fraction must be in (0, 1], got {exploration_fraction!r}")
     for name, eps in (

@@ -98,13 +98,12 @@ class NFQ(OffPolicyAlgorithm):
         (Lookahead's step size, with a round's fit as the inner steps): 1.0 (textbook) keeps all of it; below 1, each
         round moves the network only part of the way from where the round started, damping how far one round can
         swing the policy; in (0, 1]. Online rounds only (not :meth:`fit_offline`)
-    :param keep_best: ``False`` (textbook): each round's fit starts from the network the previous one left; ``True``:
-        the network a fit leaves is judged by the mean return of the training episodes that end while it collects (no
-        extra env steps; a ``Monitor`` wrapper's returns, so epsilon-greedy ones). One that scores below the best
-        score so far goes back to the best-scoring weights, before the next fit and at the end of :meth:`learn`, so
-        that one unlucky fit does not carry on, and training ends with the best weights; a network no episode ended
-        under (a round shorter than an episode, or a fit at the very end of ``learn()``) is kept unjudged. The memory
-        keeps every transition either way. The best weights are saved with the model
+    :param keep_best: ``False`` (textbook): :meth:`learn` ends with the network the last fit left; ``True``: it ends
+        with the best-scoring weights of the run. Each network a fit leaves is scored by the mean return of the
+        training episodes that end while it collects (a ``Monitor`` wrapper's returns, so epsilon-greedy ones: no
+        extra env steps), and the last one to score at least the best score so far is kept aside (saved with the
+        model); a network no episode ended under (a round shorter than an episode) is not scored. Training itself is
+        unchanged: each fit starts from the network the previous fit left
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
@@ -208,11 +207,10 @@ class NFQ(OffPolicyAlgorithm):
         self.q_net_lagged: QNetwork | None = None
         self.keep_best = keep_best
         # With keep_best: the best-scoring weights, their score, and the returns of the episodes that ended since the
-        # network last changed (a fit or a roll-back).
+        # network last changed.
         self.q_net_best: QNetwork | None = None
         self._best_score: float | None = None
         self._returns_since_fit: list[float] = []
-        self._n_rollbacks = 0
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
         self.exploration_fraction = exploration_fraction
@@ -327,6 +325,8 @@ class NFQ(OffPolicyAlgorithm):
                 break  # a complete round is fitted by the next learn(), before it collects
 
         self._judge_network()
+        if self.q_net_best is not None and self._best_score is not None:
+            self.q_net.load_state_dict(self.q_net_best.state_dict())
         callback.on_training_end()
         return self
 
@@ -342,7 +342,7 @@ class NFQ(OffPolicyAlgorithm):
     def _judge_network(self) -> None:
         """
         With ``keep_best``: score the network by the returns of the episodes that ended since it last changed (if
-        any); a new best score keeps its weights as the best, a lower one puts the best weights back.
+        any); a score at least the best so far keeps its weights aside as the best.
         """
         if self.q_net_best is None or not self._returns_since_fit:
             return
@@ -351,11 +351,7 @@ class NFQ(OffPolicyAlgorithm):
         if self._best_score is None or score >= self._best_score:
             self._best_score = score
             self.q_net_best.load_state_dict(self.q_net.state_dict())
-        else:
-            self.q_net.load_state_dict(self.q_net_best.state_dict())
-            self._n_rollbacks += 1
         self.logger.record("train/best_score", self._best_score)
-        self.logger.record("train/n_rollbacks", self._n_rollbacks)
 
     def _store_transition(
         self,

@@ -219,35 +219,41 @@ def test_keep_best_scores_the_network_by_the_monitors_returns_of_its_episodes() 
     assert model.q_net_best is not None and _same(_weights(model.q_net_best), _weights(model.q_net))
 
 
-def test_keep_best_puts_the_best_weights_back_after_a_lower_score_and_keeps_an_equal_one() -> None:
+def test_keep_best_keeps_aside_a_network_that_scores_at_least_the_best_and_training_goes_on_from_the_last() -> None:
     model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, keep_best=True, seed=0)
     model.learn(64)  # collects one round, unfitted
+    assert model.q_net_best is not None
     model._returns_since_fit = [20.0, 30.0]
     model._judge_network()
     best = _weights(model.q_net)
-    assert model._best_score == 25.0 and model.q_net_best is not None
+    assert model._best_score == 25.0 and _same(_weights(model.q_net_best), best)
     model.train(gradient_steps=2)
     fitted = _weights(model.q_net)
     assert not _same(fitted, best)
     model._returns_since_fit = [24.0]
     model._judge_network()
-    assert _same(_weights(model.q_net), best) and model._best_score == 25.0 and model._n_rollbacks == 1
-    model.train(gradient_steps=2)
+    assert _same(_weights(model.q_net), fitted) and _same(_weights(model.q_net_best), best)
+    assert model._best_score == 25.0 and model._returns_since_fit == []
     model._returns_since_fit = [25.0]
     model._judge_network()
-    assert _same(_weights(model.q_net_best), _weights(model.q_net)) and not _same(_weights(model.q_net), best)
-    assert model._n_rollbacks == 1
+    assert _same(_weights(model.q_net_best), fitted) and model._best_score == 25.0
 
 
 def test_keep_best_ends_learn_with_the_best_weights_when_the_fits_score_lower() -> None:
     model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, keep_best=True, seed=0)
     model.learn(64)
-    model._best_score = 1000.0  # no CartPole-v1 episode returns more than 500: every fit scores lower
+    model._best_score = 1000.0  # no CartPole-v1 episode returns more than 500: no fit scores as high
     assert model.q_net_best is not None
     best = _weights(model.q_net_best)
-    model.learn(1000, reset_num_timesteps=False)
-    assert model._n_rounds >= 10 and model._n_rollbacks >= 1
-    assert _same(_weights(model.q_net), best)
+    moved: list[list[th.Tensor]] = []
+
+    def record(_locals: dict, _globals: dict) -> bool:
+        moved.append(_weights(model.q_net))
+        return True
+
+    model.learn(1000, reset_num_timesteps=False, callback=record)
+    assert model._n_rounds >= 10 and not _same(moved[-1], best)  # trained on from each fit, not from the best
+    assert _same(_weights(model.q_net), best) and model._best_score == 1000.0
 
 
 def test_keep_best_needs_a_monitor_and_is_off_by_default() -> None:

@@ -69,6 +69,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-short-rounds-lr-lin-4e-3-huber-5",
     "nfq-front-loaded",
     "nfq-front-loaded-eps-0.01",
+    "nfq-front-loaded-keep-best",
 )
 
 #: The config whose budget the reference gets: it runs the same textbook settings.

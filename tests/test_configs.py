@@ -29,6 +29,7 @@ def test_shipped_configs_are_the_named_files_without_the_zoo_file() -> None:
         "nfq-capped-mse",
         "nfq-front-loaded",
         "nfq-front-loaded-eps-0.01",
+        "nfq-front-loaded-keep-best",
         "nfq-linear",
         "nfq-shared",
         "nfq-short-rounds",

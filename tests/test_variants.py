@@ -160,6 +160,14 @@ def test_double_q_values_the_action_the_network_of_the_previous_iteration_picks(
     assert any(not th.allclose(a, b) for a, b in zip(model.q_net.parameters(), q_net.parameters(), strict=True))
 
 
+def _weights(net: th.nn.Module) -> list[th.Tensor]:
+    return [p.detach().clone() for p in net.parameters()]
+
+
+def _same(a: list[th.Tensor], b: list[th.Tensor]) -> bool:
+    return all(th.equal(x, y) for x, y in zip(a, b, strict=True))
+
+
 def test_double_q_keeps_its_lagged_network_across_save_and_load(tmp_path: Path) -> None:
     kwargs: dict[str, Any] = {"memory": "growing", "target_mode": "fixed_per_iteration", "train_freq": 64}
     model = NFQ("MlpPolicy", "CartPole-v1", double_q=True, gradient_steps=2, seed=0, **kwargs)
@@ -168,9 +176,8 @@ def test_double_q_keeps_its_lagged_network_across_save_and_load(tmp_path: Path) 
     model.save(tmp_path / "model.zip")
     loaded = NFQ.load(tmp_path / "model.zip")
     assert loaded.double_q is True and loaded.q_net_lagged is not None and model.q_net_lagged is not None
-    lagged = list(loaded.q_net_lagged.parameters())
-    assert all(th.equal(a, b) for a, b in zip(lagged, model.q_net_lagged.parameters(), strict=True))
-    assert any(not th.equal(a, b) for a, b in zip(lagged, loaded.q_net.parameters(), strict=True))
+    lagged = _weights(loaded.q_net_lagged)
+    assert _same(lagged, _weights(model.q_net_lagged)) and not _same(lagged, _weights(loaded.q_net))
     plain = NFQ("MlpPolicy", "CartPole-v1", seed=0, **kwargs)
     assert plain.double_q is False and plain.q_net_lagged is None
     assert set(plain.get_parameters()) == {"policy", "policy.optimizer"}
@@ -179,7 +186,7 @@ def test_double_q_keeps_its_lagged_network_across_save_and_load(tmp_path: Path) 
 def test_round_step_size_keeps_that_fraction_of_each_rounds_change() -> None:
     whole = _sgd_model("recompute_every_step", fit_epochs=1)
     damped = _sgd_model("recompute_every_step", fit_epochs=1, round_step_size=0.25)  # the same network and memory
-    start = [p.detach().clone() for p in whole.q_net.parameters()]
+    start = _weights(whole.q_net)
     whole.train(gradient_steps=3)
     damped.train(gradient_steps=3)
     for got, before, fitted in zip(damped.q_net.parameters(), start, whole.q_net.parameters(), strict=True):
@@ -195,17 +202,9 @@ def test_round_step_size_leaves_offline_fits_whole_and_survives_save_and_load(tm
     damped = NFQ.for_dataset("MlpPolicy", dataset, gradient_steps=3, seed=0, round_step_size=0.5)
     whole.fit_offline(dataset)
     damped.fit_offline(dataset)
-    assert all(th.equal(a, b) for a, b in zip(whole.q_net.parameters(), damped.q_net.parameters(), strict=True))
+    assert _same(_weights(whole.q_net), _weights(damped.q_net))
     damped.save(tmp_path / "model.zip")
     assert NFQ.load(tmp_path / "model.zip").round_step_size == 0.5
-
-
-def _weights(net: th.nn.Module) -> list[th.Tensor]:
-    return [p.detach().clone() for p in net.parameters()]
-
-
-def _same(a: list[th.Tensor], b: list[th.Tensor]) -> bool:
-    return all(th.equal(x, y) for x, y in zip(a, b, strict=True))
 
 
 def test_keep_best_scores_the_network_by_the_monitors_returns_of_its_episodes() -> None:

@@ -39,7 +39,8 @@ ENV_KEYS = ("env_wrapper", "vec_env_wrapper", "frame_stack", "env_kwargs", "moni
 
 def read_entry(env_id: str, path: Path = ZOO_FILE) -> dict[str, Any]:
     """
-    :param env_id: a gymnasium env id (or ``"atari"``): its entry, or the file's ``default`` entry if it has none
+    :param env_id: a gymnasium env id: its entry, or the file's ``default`` entry if it has none (the zoo gives an
+        Atari game the ``atari`` entry, which ``"atari"`` names here)
     :param path: a zoo-format YAML file
     :return: the entry as written (plain data: ``policy_kwargs`` a string, ``n_timesteps`` included)
     :raises KeyError: when the file has neither an entry for ``env_id`` nor a ``default`` one, naming those it has

@@ -30,7 +30,6 @@ from sb3_nfq.fitting import (
     loss_and_gradient,
     minibatch_indices,
     shared_successor_states,
-    step_back,
     take,
     td_targets,
 )
@@ -89,15 +88,6 @@ class NFQ(OffPolicyAlgorithm):
     :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
         ``"fixed_per_iteration"`` (fitted Q-iteration): once per iteration, then ``fit_epochs`` epochs on them
     :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
-    :param double_q: ``False`` (textbook): the targets bootstrap on ``max_a' Q(s', a')``; ``True`` (needs
-        ``"fixed_per_iteration"``): Double Q-learning's ``Q(s', argmax_a' Q'(s', a'))``, where ``Q'``, the network as
-        it was when it computed the previous iteration's targets (kept across rounds, saved with the model), picks the
-        next action and the network being fitted values it, meant to curb the overestimation that taking the max of
-        noisy estimates builds up
-    :param round_step_size: Fraction of the change a round's fit made to the network's weights that the network keeps
-        (Lookahead's step size, with a round's fit as the inner steps): 1.0 (textbook) keeps all of it; below 1, each
-        round moves the network only part of the way from where the round started, damping how far one round can
-        swing the policy; in (0, 1]. Online rounds only (not :meth:`fit_offline`)
     :param keep_best: ``False`` (textbook): :meth:`learn` ends with the network the last fit left; ``True``: it ends
         with the best-scoring weights of the run. Each network a fit leaves is scored by the mean return of the
         training episodes that end while it collects (a ``Monitor`` wrapper's returns, so epsilon-greedy ones: no
@@ -152,8 +142,6 @@ class NFQ(OffPolicyAlgorithm):
         round_fraction_offset: int = 0,
         target_mode: TargetModeName = "recompute_every_step",
         fit_epochs: int = 1,
-        double_q: bool = False,
-        round_step_size: float = 1.0,
         keep_best: bool = False,
         gamma: float = 1.0,
         loss: LossName = "mse",
@@ -201,10 +189,6 @@ class NFQ(OffPolicyAlgorithm):
         self.round_fraction_offset = round_fraction_offset
         self.target_mode = target_mode
         self.fit_epochs = fit_epochs
-        self.double_q = double_q
-        self.round_step_size = round_step_size
-        # With double_q: the network as it was when it computed the previous fitted iteration's targets.
-        self.q_net_lagged: QNetwork | None = None
         self.keep_best = keep_best
         # With keep_best: the best-scoring weights, their score, and the returns of the episodes that ended since the
         # network last changed.
@@ -245,8 +229,6 @@ class NFQ(OffPolicyAlgorithm):
             self.replay_buffer_class = type(self.replay_buffer)
         super()._setup_model()
         self.q_net = self.policy.q_net
-        if self.double_q:
-            self.q_net_lagged = copy.deepcopy(self.q_net).requires_grad_(False)
         if self.keep_best:
             self.q_net_best = copy.deepcopy(self.q_net).requires_grad_(False)
         # Rprop needs a round's fit in full batches, which only a fresh memory of step rounds bounds.
@@ -376,8 +358,7 @@ class NFQ(OffPolicyAlgorithm):
 
     def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
         """
-        Run ``gradient_steps`` fitted iterations, each covering every transition in the memory (then, with
-        ``round_step_size`` below 1, keep only that fraction of the change they made).
+        Run ``gradient_steps`` fitted iterations, each covering every transition in the memory.
 
         :param gradient_steps: Number of fitted iterations (the book's K)
         :param batch_size: ``None``: one full-batch step per epoch; else shuffled mini-batches of this size
@@ -387,10 +368,7 @@ class NFQ(OffPolicyAlgorithm):
                 "NFQ's memory is empty: there is nothing to fit. Collect transitions with learn(), load them with "
                 "load_replay_buffer(), or fit a dataset with fit_offline()."
             )
-        start = None if self.round_step_size == 1 else copy.deepcopy(self.q_net.state_dict())
         self._fit(self._stored_transitions(), self.replay_buffer.n_envs, gradient_steps, batch_size)
-        if start is not None:
-            step_back(self.q_net, start, self.round_step_size)
 
     def _fit(self, batch: ReplayBufferSamples, n_envs: int, gradient_steps: int, batch_size: int | None) -> None:
         """
@@ -409,7 +387,7 @@ class NFQ(OffPolicyAlgorithm):
         losses = []
         for iteration in range(gradient_steps):
             # Classic fitted Q-iteration regresses on targets fixed for the iteration; the textbook recomputes them.
-            fixed = self._fixed_targets(batch) if self.target_mode == "fixed_per_iteration" else None
+            fixed = td_targets(self.q_net, batch, self.gamma) if self.target_mode == "fixed_per_iteration" else None
             for _ in range(self.fit_epochs):
                 for indices in minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
                     data = take(batch, indices)
@@ -431,18 +409,6 @@ class NFQ(OffPolicyAlgorithm):
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
-
-    def _fixed_targets(self, batch: ReplayBufferSamples) -> th.Tensor:
-        """
-        :param batch: the transitions of the fit
-        :return: a fitted iteration's targets; with ``double_q``, bootstrapping on the actions picked by the network
-            that computed the previous iteration's, which then takes the current network's weights
-        """
-        if self.q_net_lagged is None:
-            return td_targets(self.q_net, batch, self.gamma)
-        targets = td_targets(self.q_net, batch, self.gamma, picker=self.q_net_lagged)
-        self.q_net_lagged.load_state_dict(self.q_net.state_dict())
-        return targets
 
     @classmethod
     def for_dataset(
@@ -574,8 +540,8 @@ class NFQ(OffPolicyAlgorithm):
         )
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "q_net", "q_net_lagged", "q_net_best"]
+        return [*super()._excluded_save_params(), "q_net", "q_net_best"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        extra = [name for name, used in (("q_net_lagged", self.double_q), ("q_net_best", self.keep_best)) if used]
+        extra = ["q_net_best"] if self.keep_best else []
         return ["policy", "policy.optimizer", *extra], []

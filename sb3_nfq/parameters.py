@@ -89,8 +89,6 @@ def check_hyperparameters(
     round_fraction_offset: int,
     target_mode: str,
     fit_epochs: int,
-    double_q: bool,
-    round_step_size: float,
     keep_best: bool,
     gamma: float,
     loss: str,
@@ -154,15 +152,6 @@ def check_hyperparameters(
             f"fit_epochs={fit_epochs} needs target_mode='fixed_per_iteration': with 'recompute_every_step' "
             "every step already uses fresh targets, so raise gradient_steps instead"
         )
-    if not isinstance(double_q, bool):
-        raise ValueError(f"double_q must be True or False, got {double_q!r}")
-    if double_q and target_mode != "fixed_per_iteration":
-        raise ValueError(
-            f"double_q=True picks the next action with the network as it was one fitted iteration earlier, which needs "
-            f"target_mode='fixed_per_iteration' (got target_mode={target_mode!r})"
-        )
-    if not _is_positive_number(round_step_size) or round_step_size > 1:
-        raise ValueError(f"round_step_size must be a number in (0, 1], got {round_step_size!r}")
     if not isinstance(keep_best, bool):
         raise ValueError(f"keep_best must be True or False, got {keep_best!r}")
     if not 0.0 < exploration_fraction <= 1.0:

@@ -4,7 +4,6 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -12,7 +11,6 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
-from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_nfq import NFQ
 from sb3_nfq.rounds import fresh_round_transitions, round_length, round_size
@@ -129,83 +127,6 @@ def test_textbook_targets_are_recomputed_before_every_step() -> None:
         th.testing.assert_close(got.detach(), expected)
 
 
-def _weights(net: th.nn.Module) -> list[th.Tensor]:
-    return [p.detach().clone() for p in net.parameters()]
-
-
-def _same(a: list[th.Tensor], b: list[th.Tensor]) -> bool:
-    return all(th.equal(x, y) for x, y in zip(a, b, strict=True))
-
-
-def test_keep_best_scores_the_network_by_the_monitors_returns_of_its_episodes() -> None:
-    # No round completes in 600 steps: one network collects them all, and learn() judges it at its end.
-    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=1000, keep_best=True, seed=0)
-    model.learn(600)
-    assert model.ep_info_buffer is not None
-    returns = [episode["r"] for episode in model.ep_info_buffer]
-    assert model._n_rounds == 0 and len(returns) > 5
-    assert model._best_score == pytest.approx(np.mean(returns)) and model._returns_since_fit == []
-    assert model.q_net_best is not None and _same(_weights(model.q_net_best), _weights(model.q_net))
-
-
-def test_keep_best_keeps_aside_a_network_that_scores_at_least_the_best_and_training_goes_on_from_the_last() -> None:
-    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, keep_best=True, seed=0)
-    model.learn(64)  # collects one round, unfitted
-    assert model.q_net_best is not None
-    model._returns_since_fit = [20.0, 30.0]
-    model._judge_network()
-    best = _weights(model.q_net)
-    assert model._best_score == 25.0 and _same(_weights(model.q_net_best), best)
-    model.train(gradient_steps=2)
-    fitted = _weights(model.q_net)
-    assert not _same(fitted, best)
-    model._returns_since_fit = [24.0]
-    model._judge_network()
-    assert _same(_weights(model.q_net), fitted) and _same(_weights(model.q_net_best), best)
-    assert model._best_score == 25.0 and model._returns_since_fit == []
-    model._returns_since_fit = [25.0]
-    model._judge_network()
-    assert _same(_weights(model.q_net_best), fitted) and model._best_score == 25.0
-
-
-def test_keep_best_ends_learn_with_the_best_weights_when_the_fits_score_lower() -> None:
-    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, keep_best=True, seed=0)
-    model.learn(64)
-    model._best_score = 1000.0  # no CartPole-v1 episode returns more than 500: no fit scores as high
-    assert model.q_net_best is not None
-    best = _weights(model.q_net_best)
-    moved: list[list[th.Tensor]] = []
-
-    def record(_locals: dict, _globals: dict) -> bool:
-        moved.append(_weights(model.q_net))
-        return True
-
-    model.learn(1000, reset_num_timesteps=False, callback=record)
-    assert model._n_rounds >= 10 and not _same(moved[-1], best)  # trained on from each fit, not from the best
-    assert _same(_weights(model.q_net), best) and model._best_score == 1000.0
-
-
-def test_keep_best_needs_a_monitor_and_is_off_by_default() -> None:
-    bare = DummyVecEnv([lambda: gym.make("CartPole-v1")])
-    with pytest.raises(ValueError, match="keep_best=True judges the network by the returns of its training episodes"):
-        NFQ("MlpPolicy", bare, keep_best=True).learn(64)
-    plain = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64)
-    plain.learn(200)
-    assert plain.keep_best is False and plain.q_net_best is None and plain._returns_since_fit == []
-    assert set(plain.get_parameters()) == {"policy", "policy.optimizer"}
-
-
-def test_keep_best_keeps_the_best_weights_and_score_across_save_and_load(tmp_path: Path) -> None:
-    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, keep_best=True, seed=0)
-    model.learn(640)
-    assert model.q_net_best is not None and model._best_score is not None
-    assert set(model.get_parameters()) == {"policy", "policy.optimizer", "q_net_best"}
-    model.save(tmp_path / "model.zip")
-    loaded = NFQ.load(tmp_path / "model.zip")
-    assert loaded.keep_best is True and loaded._best_score == model._best_score and loaded.q_net_best is not None
-    assert _same(_weights(loaded.q_net_best), _weights(model.q_net_best))
-
-
 def test_fixed_targets_with_minibatches_use_each_transitions_own_target() -> None:
     model = NFQ(
         "MlpPolicy",
@@ -277,7 +198,6 @@ def test_rprop_with_a_batch_size_that_covers_the_whole_fresh_round_takes_full_ba
         ({"target_mode": "fixed"}, r"target_mode must be one of \['recompute_every_step', 'fixed_per_iteration'\]"),
         ({"fit_epochs": 0}, "fit_epochs must be a positive integer"),
         ({"fit_epochs": 3}, "fit_epochs=3 needs target_mode='fixed_per_iteration'"),
-        ({"keep_best": "yes"}, "keep_best must be True or False, got 'yes'"),
         ({"memory": "growing", "buffer_size": 100}, "buffer_size=100 is smaller than one round of 1024"),
     ],
 )

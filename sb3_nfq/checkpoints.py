@@ -61,5 +61,5 @@ def drop_retired(attributes: dict[str, Any], params: dict[str, Any]) -> dict[str
             UserWarning,
             stacklevel=3,
         )
-    networks = {saved for retired in RETIRED_PARAMETERS.values() for saved in retired.saved}
-    return {name: value for name, value in params.items() if name not in networks}
+    retired_names = {saved for retired in RETIRED_PARAMETERS.values() for saved in retired.saved}
+    return {name: value for name, value in params.items() if name not in retired_names}

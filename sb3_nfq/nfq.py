@@ -108,8 +108,9 @@ class NFQ(OffPolicyAlgorithm):
     :param device: Device (cpu, cuda, ...) on which the code should be run.
         Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
-    :param kwargs: nothing else is accepted: DQN's ``learning_starts``, ``target_update_interval``, ``tau``, ...
-        raise a ``TypeError`` saying what NFQ does instead
+    :param kwargs: nothing else is accepted: DQN's ``learning_starts``, ``target_update_interval``, ``tau``, ... and
+        the parameters NFQ no longer has (``double_q``, ``round_step_size``, ``keep_best``) raise a ``TypeError``
+        saying what NFQ does instead
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {

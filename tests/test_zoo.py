@@ -166,9 +166,12 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
 
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A zoo training run of two NFQ rounds on CartPole, with evaluations and checkpoints; yields its folder."""
+    """
+    A zoo training run of 2048 steps on CartPole with the packaged entry, with evaluations and checkpoints; yields its
+    folder, where ``train_output.txt`` holds what it printed.
+    """
     workdir = tmp_path_factory.mktemp("zoo_train")
-    _check(
+    output = _check(
         _zoo(
             "train",
             "--env",
@@ -186,6 +189,7 @@ def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
             cwd=workdir,
         )
     )
+    (workdir / "train_output.txt").write_text(output)
     yield workdir
 
 
@@ -215,6 +219,9 @@ def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: 
         entry["memory"],
     )
     assert model.policy.net_arch == zoo_to_kwargs(entry)["policy_kwargs"]["net_arch"]
+    # The entry's callback key reached learn(): KeepBestCallback logs the best score
+    assert entry["callback"] == "sb3_nfq.KeepBestCallback"
+    assert "best_score" in (trained_run / "train_output.txt").read_text()
     assert NFQ.load(run / "rl_model_1024_steps.zip").num_timesteps == 1024
     assert NFQ.load(run / "best_model.zip").num_timesteps in (1024, 2048)
 

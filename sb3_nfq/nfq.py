@@ -3,6 +3,7 @@
 import copy
 import io
 import math
+import numbers
 import pathlib
 from typing import Any, ClassVar, TypeVar
 
@@ -285,6 +286,14 @@ class NFQ(OffPolicyAlgorithm):
         :param progress_bar: Display a progress bar using tqdm and rich.
         :return: the trained model
         """
+        if (
+            isinstance(total_timesteps, bool)
+            or not isinstance(total_timesteps, numbers.Real)
+            or not total_timesteps > 0
+        ):
+            raise ValueError(
+                f"total_timesteps (env steps to train for) must be a positive number, got {total_timesteps!r}"
+            )
         total_timesteps, callback = self._setup_learn(
             total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
         )

@@ -113,3 +113,11 @@ def test_non_finite_loss_stops_training_and_names_the_round() -> None:
     assert isinstance(error.value, NFQDivergenceError) and isinstance(error.value, ValueError)  # zoo tuning prunes
     # the failing step was not applied: the network is still finite
     assert all(p.isfinite().all() for p in model.q_net.parameters())
+
+
+@pytest.mark.parametrize("total_timesteps", [0, -100, float("nan"), "1000", True])
+def test_learn_refuses_a_budget_that_is_not_a_positive_number(total_timesteps: Any) -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=1)
+    with pytest.raises(ValueError, match=r"total_timesteps .* must be a positive number, got"):
+        model.learn(total_timesteps)
+    assert model.num_timesteps == 0

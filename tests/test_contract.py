@@ -96,6 +96,17 @@ def test_predict_on_an_obs_info_tuple_explains_the_mistake_on_every_path(determi
             model.predict(env.reset(seed=0), deterministic=deterministic)  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_predict_takes_lists_and_tuples_of_numbers_as_dqn_does(deterministic: bool) -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", seed=0)  # exploration_rate 0.5: both the explore and the greedy branch
+    for _ in range(20):
+        for observation in ([0.0, 0.0, 0.0, 0.0], (0.0, 0.1, 0.0, -0.1)):
+            action, _ = model.predict(observation, deterministic=deterministic)  # type: ignore[arg-type]
+            assert isinstance(action, np.ndarray) and action.shape == () and int(action) in (0, 1)
+        actions, _ = model.predict([[0.0, 0.0, 0.0, 0.0]] * 3, deterministic=deterministic)  # type: ignore[arg-type]
+        assert isinstance(actions, np.ndarray) and actions.shape == (3,)
+
+
 # 4. Targets in eval mode
 
 

@@ -35,6 +35,9 @@ DQN_ONLY_PARAMETERS = {
     "optimize_memory_usage": "NFQ's memory keeps next observations explicitly; bound it with buffer_size instead",
     "replay_buffer_class": "NFQ builds its own memory: choose memory='fresh' (textbook) or 'growing', and buffer_size",
     "replay_buffer_kwargs": "NFQ builds its own memory: choose memory='fresh' (textbook) or 'growing', and buffer_size",
+    "n_steps": (
+        "NFQ's TD targets are one-step, r + gamma * max_a' Q(s', a') (what DQN's default n_steps=1 does): drop n_steps"
+    ),
     "action_noise": "NFQ acts on Discrete actions, epsilon-greedy (exploration_initial_eps, exploration_final_eps)",
 }
 

@@ -1,13 +1,17 @@
 """Bad input fails early, with a message naming the parameter and what is allowed."""
 
+import inspect
 from typing import Any
 
 import gymnasium as gym
 import pytest
+from stable_baselines3 import DQN
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_nfq import NFQ, NFQDivergenceError
+from sb3_nfq.parameters import DQN_ONLY_PARAMETERS
 from tests.envs import NaNRewardAfter
 
 
@@ -53,11 +57,21 @@ def test_bad_hyperparameters_are_rejected_at_construction(kwargs: dict[str, Any]
         ("tau", 0.005, "no target network"),
         ("optimize_memory_usage", True, "buffer_size"),
         ("replay_buffer_class", None, "memory='fresh'"),
+        ("n_steps", 3, "one-step"),
+        ("n_steps", 1, "one-step.*drop n_steps"),
     ],
 )
 def test_dqn_parameters_get_a_type_error_saying_what_nfq_does_instead(name: str, value: Any, instead: str) -> None:
     with pytest.raises(TypeError, match=f"DQN's parameter '{name}'.*{instead}.*Coming from DQN"):
         NFQ("MlpPolicy", "CartPole-v1", **{name: value})
+
+
+def test_every_parameter_of_dqn_is_an_nfq_parameter_or_a_dqn_only_one() -> None:
+    dqn = set(inspect.signature(DQN.__init__).parameters) - {"self"}
+    nfq = set(inspect.signature(NFQ.__init__).parameters)
+    assert dqn - nfq - set(DQN_ONLY_PARAMETERS) == set()
+    off_policy = set(inspect.signature(OffPolicyAlgorithm.__init__).parameters)
+    assert set(DQN_ONLY_PARAMETERS) <= dqn | off_policy  # no stale entry (action_noise is OffPolicyAlgorithm's)
 
 
 def test_an_unknown_keyword_is_a_type_error_naming_it() -> None:

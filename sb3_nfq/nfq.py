@@ -5,6 +5,7 @@ import io
 import math
 import numbers
 import pathlib
+import warnings
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -263,7 +264,7 @@ class NFQ(OffPolicyAlgorithm):
 
     def learn(
         self: SelfNFQ,
-        total_timesteps: int = DEFAULT_TOTAL_TIMESTEPS,
+        total_timesteps: int | None = None,
         callback: MaybeCallback = None,
         log_interval: int = 4,
         tb_log_name: str = "NFQ",
@@ -277,8 +278,10 @@ class NFQ(OffPolicyAlgorithm):
         fits it, and ``save_replay_buffer`` saves it. With ``train_freq`` counted in episodes, training runs in
         whole rounds and may go past ``total_timesteps``.
 
-        :param total_timesteps: The total number of environment steps to train on (default: 300,000, the
-            textbook's CartPole-v1 budget)
+        :param total_timesteps: The total number of environment steps to train on; ``None`` (NFQ's default, which
+            DQN does not have): 300,000, the textbook's CartPole-v1 budget, with a ``UserWarning`` saying so and how
+            to watch the progress (``progress_bar=True`` or ``verbose=1``), since at ``verbose=0`` nothing is
+            printed for the minutes it takes
         :param callback: callback(s) called at every step with state of the algorithm.
         :param log_interval: Log data every ``log_interval`` episodes
         :param tb_log_name: the name of the run for TensorBoard logging
@@ -286,6 +289,15 @@ class NFQ(OffPolicyAlgorithm):
         :param progress_bar: Display a progress bar using tqdm and rich.
         :return: the trained model
         """
+        if total_timesteps is None:
+            warnings.warn(
+                f"learn() was called without total_timesteps: NFQ trains for its default budget of "
+                f"{DEFAULT_TOTAL_TIMESTEPS:,} env steps (the textbook's CartPole-v1 budget), which takes minutes. "
+                "Pass progress_bar=True (or verbose=1) to watch the progress, or total_timesteps to choose the budget.",
+                UserWarning,
+                stacklevel=2,
+            )
+            total_timesteps = DEFAULT_TOTAL_TIMESTEPS
         if (
             isinstance(total_timesteps, bool)
             or not isinstance(total_timesteps, numbers.Real)

@@ -62,12 +62,17 @@ def minibatch_indices(n_transitions: int, batch_size: int | None, device: th.dev
     :param batch_size: ``None`` for the whole memory at once, else the mini-batch size
     :param device: device of the index tensors
     :return: ``None`` (the whole memory) once, or the indices of one shuffled epoch of mini-batches
-        that covers every transition exactly once.
+        that covers every transition exactly once. A last mini-batch of one row (``n_transitions % batch_size ==
+        1``, ``batch_size`` above 1) joins the one before it, which then holds ``batch_size + 1`` rows: a BatchNorm
+        layer in training mode cannot normalise one row, and one row's gradient step would be the noisiest of all.
     """
     if batch_size is None or batch_size >= n_transitions:
         yield None
         return
-    yield from th.randperm(n_transitions, device=device).split(batch_size)
+    batches = list(th.randperm(n_transitions, device=device).split(batch_size))
+    if batch_size > 1 and len(batches[-1]) == 1:
+        batches[-2:] = [th.cat(batches[-2:])]
+    yield from batches
 
 
 def take_rows(observations: Any, rows: th.Tensor | slice) -> Any:

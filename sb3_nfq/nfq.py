@@ -76,7 +76,8 @@ class NFQ(OffPolicyAlgorithm):
         ``ceil(train_freq / n_envs)`` steps in each), or ``(n, "episode")``: ``n`` whole episodes (one env only)
     :param gradient_steps: Fitted iterations per round (the book's K), each covering the whole memory once
     :param batch_size: ``None`` (textbook): one full-batch gradient step per epoch; an integer: shuffled mini-batches
-        of this size that cover every transition once
+        of this size that cover every transition once (a last mini-batch of one row joins the one before it, so
+        that a BatchNorm layer never sees a mini-batch of one)
     :param buffer_size: Most transitions the memory holds; ``None``: one round (fresh memory; needed when rounds
         count episodes), 1,000,000 (growing)
     :param memory: ``"fresh"`` (textbook): fit the round's transitions, then discard them; ``"growing"`` (2005

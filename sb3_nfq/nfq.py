@@ -315,6 +315,7 @@ class NFQ(OffPolicyAlgorithm):
         if self.keep_best:
             rounds.check_episode_returns(self.env)
 
+        self._restart_round_missing_from_memory()
         length = rounds.round_length(self.train_freq, self.n_envs)
         by_episode = length.unit == TrainFrequencyUnit.EPISODE
         while True:
@@ -351,6 +352,24 @@ class NFQ(OffPolicyAlgorithm):
             self.q_net.load_state_dict(self.q_net_best.state_dict())
         callback.on_training_end()
         return self
+
+    def _restart_round_missing_from_memory(self) -> None:
+        """
+        A model saved partway through a round and loaded without its replay buffer counts a partly collected round
+        that its memory does not hold: fitting it would fit a short round of the transitions still to come. Start
+        that round over instead, with a warning.
+        """
+        if self._round_steps <= self.replay_buffer.size():
+            return
+        warnings.warn(
+            f"This model was saved {self._round_steps} env.step() calls into round {self._n_rounds + 1}, but its "
+            f"memory holds {self.replay_buffer.size()}: it was loaded without its replay buffer. The round starts "
+            "over as a whole round; to go on with the collected transitions instead, call "
+            "model.load_replay_buffer(path) (of a buffer saved with save_replay_buffer) before learn().",
+            UserWarning,
+            stacklevel=3,
+        )
+        self._round_steps = self._round_episodes = self._round_target = 0
 
     def _round_size(self, length: TrainFreq) -> int:
         """:return: the current round's length, in episodes or ``env.step()`` calls (fixed when it starts)"""

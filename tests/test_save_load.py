@@ -116,3 +116,17 @@ def test_loading_something_that_is_not_an_nfq_checkpoint_fails_clearly(tmp_path:
 
     with pytest.raises(FileNotFoundError):
         NFQ.load(tmp_path / "missing.zip")
+
+
+def test_a_model_saved_mid_round_and_loaded_without_its_memory_collects_a_whole_round(tmp_path: Path) -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=2, seed=0)
+    model.learn(40)  # 40 of the round's 64 transitions collected, not fitted
+    model.save(tmp_path / "model.zip")
+    loaded = NFQ.load(tmp_path / "model.zip", env=make_vec_env("CartPole-v1", seed=1))
+    fitting = record_fitting(loaded)
+    with pytest.warns(UserWarning, match=r"40 env.step\(\) calls into round 1.*holds 0.*load_replay_buffer"):
+        loaded.learn(24)
+    assert loaded._n_rounds == 0 and loaded._round_steps == 24  # no short round of 24 transitions fitted
+    loaded.learn(40, reset_num_timesteps=False)
+    assert loaded._n_rounds == 1
+    assert {len(batch) for batch in fitting.grad_inputs} == {64}

@@ -39,6 +39,7 @@ from sb3_nfq.fitting import (
 from sb3_nfq.memory import make_memory, stored_transitions
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.parameters import (
+    DEFAULT_EXPLORATION_FRACTION,
     HYPERPARAMETERS,
     LossName,
     MemoryName,
@@ -79,7 +80,8 @@ class NFQ(OffPolicyAlgorithm):
         of this size that cover every transition once (a last mini-batch of one row joins the one before it, so
         that a BatchNorm layer never sees a mini-batch of one)
     :param buffer_size: Most transitions the memory holds; ``None``: one round (fresh memory; needed when rounds
-        count episodes), 1,000,000 (growing)
+        count episodes), 1,000,000 (growing). A fresh memory of rounds counted in steps always holds one round:
+        ``buffer_size`` is refused there
     :param memory: ``"fresh"`` (textbook): fit the round's transitions, then discard them; ``"growing"`` (2005
         paper): keep every transition (the oldest go past ``buffer_size``) and fit the whole memory every round
     :param round_fraction: With ``memory="growing"``, ``f``: a round collects ``max(train_freq, f * M)``
@@ -112,7 +114,8 @@ class NFQ(OffPolicyAlgorithm):
     :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
         larger errors pull on the fit no harder than this one (1.0: SB3 DQN's ``smooth_l1_loss``); a positive number
     :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from
-        ``exploration_initial_eps`` to ``exploration_final_eps``, in (0, 1]
+        ``exploration_initial_eps`` to ``exploration_final_eps``, in (0, 1]; a value other than the default is
+        refused when the two are equal (it would have no effect)
     :param exploration_initial_eps: Initial probability of a random action while collecting
     :param exploration_final_eps: Final probability of a random action while collecting
     :param max_grad_norm: Clip the gradient norm to this value; ``None`` (textbook): no clipping
@@ -161,7 +164,7 @@ class NFQ(OffPolicyAlgorithm):
         gamma: float = 1.0,
         loss: LossName = "mse",
         huber_delta: float = 1.0,
-        exploration_fraction: float = 0.1,
+        exploration_fraction: float = DEFAULT_EXPLORATION_FRACTION,
         exploration_initial_eps: float = 0.5,
         exploration_final_eps: float = 0.5,
         max_grad_norm: float | None = None,

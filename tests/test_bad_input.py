@@ -40,6 +40,13 @@ from tests.envs import NaNRewardAfter
         ({"exploration_final_eps": -0.1}, r"exploration_final_eps must be a probability in \[0, 1\]"),
         ({"exploration_fraction": 0.0}, r"exploration_fraction must be in \(0, 1\]"),
         ({"max_grad_norm": 0.0}, "max_grad_norm must be positive or None"),
+        ({"buffer_size": 100_000}, r"buffer_size=100000 has no effect with memory='fresh'.*memory='growing'"),
+        ({"buffer_size": 1024, "train_freq": 1024}, "buffer_size=1024 has no effect with memory='fresh'"),
+        ({"exploration_fraction": 0.2}, r"exploration_fraction=0.2 .* both are 0.5.*set them apart"),
+        (
+            {"exploration_fraction": 0.2, "exploration_initial_eps": 0.1, "exploration_final_eps": 0.1},
+            "exploration_fraction=0.2 .* both are 0.1",
+        ),
         ({"policy_kwargs": {"net_arch": [64, 0]}}, "net_arch must be a list of positive layer sizes"),
         ({"policy_kwargs": {"net_arch": [64, True]}}, "net_arch must be a list of positive layer sizes"),
     ],
@@ -103,7 +110,18 @@ def test_discrete_action_space_not_starting_at_zero_is_rejected() -> None:
 
 def test_round_larger_than_buffer_size_is_rejected() -> None:
     with pytest.raises(ValueError, match="buffer_size=100 is smaller than one round of 1024 transitions"):
-        NFQ("MlpPolicy", "CartPole-v1", buffer_size=100)
+        NFQ("MlpPolicy", "CartPole-v1", memory="growing", buffer_size=100)
+
+
+def test_buffer_size_and_exploration_fraction_are_accepted_where_they_have_an_effect() -> None:
+    assert NFQ("MlpPolicy", "CartPole-v1", memory="growing", buffer_size=100_000).replay_buffer.buffer_size == 100_000
+    episodes = NFQ("MlpPolicy", "CartPole-v1", train_freq=(2, "episode"), buffer_size=5_000)
+    assert episodes.replay_buffer.buffer_size == 5_000  # a fresh memory of episode rounds: the most a round holds
+    decaying = NFQ(
+        "MlpPolicy", "CartPole-v1", exploration_initial_eps=1.0, exploration_final_eps=0.05, exploration_fraction=0.2
+    )
+    assert decaying.exploration_schedule(0.9) == pytest.approx(1.0 - 0.95 / 2)
+    NFQ("MlpPolicy", "CartPole-v1", exploration_fraction=0.1)  # the default, whose effect nothing can tell
 
 
 def test_episode_rounds_need_buffer_size_and_one_env() -> None:

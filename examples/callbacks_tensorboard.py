@@ -47,6 +47,13 @@ def main(argv: list[str] | None = None) -> Path:
         ),
         CheckpointCallback(save_freq=10 * round_steps, save_path=str(log_dir / "checkpoints"), name_prefix="nfq"),
     ]
+    checkpoint_steps = 10 * round_steps * env.num_envs
+    if args.total_timesteps < checkpoint_steps:
+        print(
+            f"--total-timesteps {args.total_timesteps} is below {checkpoint_steps}, the steps between checkpoints: "
+            f"no checkpoint will be saved, so the resume demo will be skipped (pass --total-timesteps "
+            f"{checkpoint_steps} or more to see it)."
+        )
     model.learn(args.total_timesteps, callback=callbacks, progress_bar=True)
 
     checkpoints = sorted((log_dir / "checkpoints").glob("nfq_*_steps.zip"), key=lambda p: int(p.stem.split("_")[1]))
@@ -56,6 +63,8 @@ def main(argv: list[str] | None = None) -> Path:
         resumed = NFQ.load(checkpoints[-1], env=env)
         resumed.learn(2048, reset_num_timesteps=False, tb_log_name="NFQ_resumed")
         print(f"Resumed from {checkpoints[-1].name} and trained on to {resumed.num_timesteps} steps")
+    else:
+        print(f"No checkpoint to resume from: resume demo skipped (it needs --total-timesteps {checkpoint_steps}+)")
     print(f"TensorBoard logs: tensorboard --logdir {log_dir / 'tensorboard'}")
     return log_dir
 

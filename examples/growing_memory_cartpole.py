@@ -4,7 +4,7 @@ every round, with short rounds and decaying exploration. Compare with the textbo
 (examples/solve_cartpole.py), which need many times more steps.
 
 Every 1024 steps (every 4th round) the greedy policy plays 100 episodes; the run reports the first evaluation whose
-mean reaches 475 (the book's "solved") and a final score on 100 new episodes. A few minutes on one core.
+mean reaches 475 (the book's "solved") and a final score on 100 new episodes.
 
     python examples/growing_memory_cartpole.py [--total-timesteps 50000] [--seed 0]
 """

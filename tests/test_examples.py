@@ -40,6 +40,15 @@ def test_callbacks_tensorboard_example_writes_evaluations_checkpoints_and_tensor
     assert NFQ.load(log_dir / "best_model" / "best_model.zip").n_envs == 2
 
 
+def test_callbacks_tensorboard_example_says_when_its_budget_is_too_small_for_a_checkpoint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _main("callbacks_tensorboard.py")(["--total-timesteps", "2048", "--log-dir", str(tmp_path)])
+    printed = capsys.readouterr().out
+    assert "--total-timesteps 2048 is below 10240, the steps between checkpoints" in printed
+    assert "resume demo skipped (it needs --total-timesteps 10240+)" in printed
+
+
 def test_main_job_trains_evaluates_saves_and_reloads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     output = tmp_path / "nfq_cartpole.zip"
     status = _main("solve_cartpole.py")(

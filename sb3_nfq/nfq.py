@@ -29,6 +29,7 @@ from sb3_nfq.checkpoints import check_nfq_checkpoint
 from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
     check_loss_is_finite,
+    check_q_values_bounded,
     loss_and_gradient,
     minibatch_indices,
     shared_successor_states,
@@ -231,6 +232,9 @@ class NFQ(OffPolicyAlgorithm):
         # The current round's length (env.step() calls; episodes, for episode rounds), fixed when it starts (0: not
         # yet): with round_fraction, it follows what the memory holds then.
         self._round_target = 0
+        # The largest |reward| fitted so far, and whether this learn() has warned that Q-values passed what it allows.
+        self._max_abs_reward = 0.0
+        self._q_bound_warned = False
 
         if _init_setup_model:
             self._setup_model()
@@ -315,6 +319,7 @@ class NFQ(OffPolicyAlgorithm):
         )
         callback.on_training_start(locals(), globals())
         assert self.env is not None
+        self._q_bound_warned = False
         if self.keep_best:
             rounds.check_episode_returns(self.env)
 
@@ -454,6 +459,7 @@ class NFQ(OffPolicyAlgorithm):
         for iteration in range(gradient_steps):
             # Classic fitted Q-iteration regresses on targets fixed for the iteration; the textbook recomputes them.
             fixed = self._fixed_targets(batch) if self.target_mode == "fixed_per_iteration" else None
+            q_abs_max = th.zeros((), device=batch.rewards.device)  # over the last iteration: its steps cover the batch
             for _ in range(self.fit_epochs):
                 for indices in minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
                     data = take(batch, indices)
@@ -464,6 +470,7 @@ class NFQ(OffPolicyAlgorithm):
                     )
                     check_loss_is_finite(loss_value, self._n_rounds, iteration + 1, gradient_steps, self.num_timesteps)
                     losses.append(loss_value)
+                    q_abs_max = th.maximum(q_abs_max, q_values.detach().abs().max())
                     if self.max_grad_norm is not None:
                         th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
                     self.policy.optimizer.step()
@@ -475,6 +482,19 @@ class NFQ(OffPolicyAlgorithm):
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
+        self._max_abs_reward = max(self._max_abs_reward, batch.rewards.abs().max().item())
+        exceeded = check_q_values_bounded(
+            q_abs_max.item(),
+            self._max_abs_reward,
+            self.gamma,
+            self._n_rounds,
+            self.num_timesteps,
+            not self._q_bound_warned,
+        )
+        self._q_bound_warned |= exceeded
+        self.logger.record("train/q_abs_max", q_abs_max.item())
+        if self.gamma < 1:
+            self.logger.record("train/q_bound_exceeded", int(exceeded))
 
     def _fixed_targets(self, batch: ReplayBufferSamples) -> th.Tensor:
         """
@@ -528,6 +548,7 @@ class NFQ(OffPolicyAlgorithm):
         )
         if not hasattr(self, "_logger"):
             self.set_logger(configure_logger(self.verbose, self.tensorboard_log, "NFQ_offline"))
+        self._q_bound_warned = False
         self._fit(dataset.samples(self.device), 1, iterations, self.batch_size)
         self.logger.dump(step=self.num_timesteps)
         return self

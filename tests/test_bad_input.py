@@ -1,12 +1,15 @@
 """Bad input fails early, with a message naming the parameter and what is allowed."""
 
 import inspect
+import warnings
 from typing import Any
 
 import gymnasium as gym
 import pytest
 from stable_baselines3 import DQN
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.envs import FakeImageEnv
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -153,3 +156,38 @@ def test_learn_refuses_a_budget_that_is_not_a_positive_number(total_timesteps: A
     with pytest.raises(ValueError, match=r"total_timesteps .* must be a positive number, got"):
         model.learn(total_timesteps)
     assert model.num_timesteps == 0
+
+
+def _zero_reward_images() -> FakeImageEnv:
+    """SB3's image env: its rewards are all 0, so every true Q-value is 0."""
+    return FakeImageEnv(screen_height=84, screen_width=84, n_channels=1, discrete=True)
+
+
+def test_q_values_past_what_the_rewards_allow_warn_once_before_any_nan() -> None:
+    model = NFQ("CnnPolicy", _zero_reward_images(), gamma=0.99, train_freq=64, gradient_steps=4, seed=0)
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    with pytest.warns(
+        UserWarning, match=r"look divergent: after round \d+ .*\|Q\(s, a\)\| .* bound every value by 0"
+    ) as caught:
+        model.learn(64 * 4)
+    assert len([w for w in caught if "look divergent" in str(w.message)]) == 1  # once per learn()
+    assert model.logger.name_to_value["train/q_bound_exceeded"] == 1
+    assert model.logger.name_to_value["train/q_abs_max"] > 100
+
+
+def test_gamma_1_has_no_q_value_bound_to_check() -> None:
+    model = NFQ("CnnPolicy", _zero_reward_images(), gamma=1.0, train_freq=64, gradient_steps=4, seed=0)
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.learn(64 * 4)
+    assert "train/q_bound_exceeded" not in model.logger.name_to_value
+
+
+def test_healthy_cartpole_training_with_gamma_below_1_does_not_warn_of_divergence() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", gamma=0.99, train_freq=256, gradient_steps=10, seed=0)
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.learn(256 * 8)
+    assert model.logger.name_to_value["train/q_bound_exceeded"] == 0

@@ -25,7 +25,7 @@ from stable_baselines3.common.type_aliases import (
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
 from sb3_nfq import rounds
-from sb3_nfq.checkpoints import check_nfq_checkpoint
+from sb3_nfq.checkpoints import check_nfq_checkpoint, safe_custom_objects
 from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
     check_loss_is_finite,
@@ -242,6 +242,9 @@ class NFQ(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
         self._convert_train_freq()
+        # Saved as plain JSON beside SB3's pickle of train_freq, for NFQ.load(safe=True).
+        assert isinstance(self.train_freq, TrainFreq)
+        self._train_freq_json = [self.train_freq.frequency, self.train_freq.unit.value]
         if self.replay_buffer is None:
             self.replay_buffer = make_memory(
                 self.observation_space,
@@ -612,11 +615,22 @@ class NFQ(OffPolicyAlgorithm):
         custom_objects: dict[str, Any] | None = None,
         print_system_info: bool = False,
         force_reset: bool = True,
+        safe: bool = False,
         **kwargs: Any,
     ) -> SelfNFQ:
         """
         Load an NFQ model from a zip file saved by :meth:`save`; anything else raises a ``ValueError``.
         See :meth:`stable_baselines3.common.base_class.BaseAlgorithm.load` for the parameters.
+
+        Loading is code execution: SB3 stores what JSON cannot hold (spaces, schedules, classes in
+        ``policy_kwargs``) as cloudpickle, and a crafted checkpoint runs any code it likes when it is unpickled. Load
+        only checkpoints you trust, or use ``safe=True``, which unpickles nothing: it rebuilds every pickled entry
+        from the checkpoint's plain JSON (Discrete actions, the exploration schedule, ``train_freq``, a constant
+        ``learning_rate``, torch optimizer and activation classes in ``policy_kwargs``) and from ``env`` (the
+        observation space; without ``env``, only a small ``Box`` is rebuilt), loads the weights with
+        ``torch.load(weights_only=True)``, and refuses, naming it, an entry it cannot rebuild (a learning-rate
+        schedule, a custom features extractor class: pass those in ``custom_objects``). A safe load starts the next
+        ``learn()`` with new episodes and empty episode statistics.
 
         :param path: path to the file (or a file-like) where to load the agent from
         :param env: the new environment to run the loaded model on
@@ -624,9 +638,14 @@ class NFQ(OffPolicyAlgorithm):
         :param custom_objects: Dictionary of objects to replace upon loading.
         :param print_system_info: Whether to print system info from the saved model
         :param force_reset: Force call to ``reset()`` before training
+        :param safe: unpickle nothing (see above); ``False``: SB3's load, which runs the checkpoint's pickles
         :param kwargs: extra arguments to change the model when loading
         :return: new model instance with loaded parameters
         """
+        if safe:
+            if env is not None:  # wrapped as SB3's load wraps it (VecTransposeImage too), to read its spaces
+                env = cls._wrap_env(env)
+            custom_objects = safe_custom_objects(path, env, custom_objects, cls.policy_aliases)
         check_nfq_checkpoint(path, custom_objects)
         return super().load(
             path,

@@ -1,6 +1,7 @@
 """Every example runs as is (here on tiny budgets)."""
 
 import runpy
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -31,10 +32,15 @@ def test_examples_use_one_torch_thread_unless_told_otherwise() -> None:
 
 
 def test_callbacks_tensorboard_example_writes_evaluations_checkpoints_and_tensorboard(tmp_path: Path) -> None:
-    log_dir = _main("callbacks_tensorboard.py")(["--total-timesteps", "10240", "--log-dir", str(tmp_path)])
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*load_replay_buffer")  # the resume goes on with the round
+        log_dir = _main("callbacks_tensorboard.py")(["--total-timesteps", "10240", "--log-dir", str(tmp_path)])
     assert (log_dir / "eval" / "evaluations.npz").is_file()
     assert (log_dir / "best_model" / "best_model.zip").is_file()
-    assert sorted(p.name for p in (log_dir / "checkpoints").iterdir()) == ["nfq_10240_steps.zip"]
+    assert sorted(p.name for p in (log_dir / "checkpoints").iterdir()) == [
+        "nfq_10240_steps.zip",
+        "nfq_replay_buffer_10240_steps.pkl",
+    ]
     runs = sorted(p.name for p in (log_dir / "tensorboard").iterdir())
     assert runs[0] == "NFQ_1" and runs[1].startswith("NFQ_resumed"), runs
     assert NFQ.load(log_dir / "best_model" / "best_model.zip").n_envs == 2

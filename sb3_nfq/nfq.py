@@ -630,7 +630,8 @@ class NFQ(OffPolicyAlgorithm):
         observation space; without ``env``, only a small ``Box`` is rebuilt), loads the weights with
         ``torch.load(weights_only=True)``, and refuses, naming it, an entry it cannot rebuild (a learning-rate
         schedule, a custom features extractor class: pass those in ``custom_objects``). A safe load starts the next
-        ``learn()`` with new episodes and empty episode statistics.
+        ``learn()`` with new episodes and empty episode statistics. ``load_replay_buffer`` always unpickles its
+        file: load only replay buffers you trust.
 
         :param path: path to the file (or a file-like) where to load the agent from
         :param env: the new environment to run the loaded model on

@@ -1,6 +1,6 @@
 """
 NFQ with the SB3 tooling you already use: EvalCallback (greedy evaluation, best model),
-CheckpointCallback (zip checkpoints) and TensorBoard logging, then resuming from a checkpoint.
+CheckpointCallback (zip checkpoints, with the replay buffer) and TensorBoard logging, then resuming from a checkpoint.
 
     python examples/callbacks_tensorboard.py [--total-timesteps 60000] [--log-dir logs/nfq_cartpole]
     tensorboard --logdir logs/nfq_cartpole/tensorboard
@@ -45,17 +45,34 @@ def main(argv: list[str] | None = None) -> Path:
             log_path=str(log_dir / "eval"),
             deterministic=True,
         ),
-        CheckpointCallback(save_freq=10 * round_steps, save_path=str(log_dir / "checkpoints"), name_prefix="nfq"),
+        # With its replay buffer, a checkpoint taken partway through a round resumes that round where it stopped.
+        CheckpointCallback(
+            save_freq=10 * round_steps,
+            save_path=str(log_dir / "checkpoints"),
+            name_prefix="nfq",
+            save_replay_buffer=True,
+        ),
     ]
+    checkpoint_steps = 10 * round_steps * env.num_envs
+    if args.total_timesteps < checkpoint_steps:
+        print(
+            f"--total-timesteps {args.total_timesteps} is below {checkpoint_steps}, the steps between checkpoints: "
+            f"no checkpoint will be saved, so the resume demo will be skipped (pass --total-timesteps "
+            f"{checkpoint_steps} or more to see it)."
+        )
     model.learn(args.total_timesteps, callback=callbacks, progress_bar=True)
 
     checkpoints = sorted((log_dir / "checkpoints").glob("nfq_*_steps.zip"), key=lambda p: int(p.stem.split("_")[1]))
     print(f"Checkpoints: {[p.name for p in checkpoints]}")
     if checkpoints:
-        # Resume from the last checkpoint: weights, optimizer state and step counter come back.
+        # Resume from the last checkpoint: weights, optimizer state, step counter and the round's transitions.
         resumed = NFQ.load(checkpoints[-1], env=env)
+        steps = checkpoints[-1].stem.split("_")[1]
+        resumed.load_replay_buffer(log_dir / "checkpoints" / f"nfq_replay_buffer_{steps}_steps.pkl")
         resumed.learn(2048, reset_num_timesteps=False, tb_log_name="NFQ_resumed")
         print(f"Resumed from {checkpoints[-1].name} and trained on to {resumed.num_timesteps} steps")
+    else:
+        print(f"No checkpoint to resume from: resume demo skipped (it needs --total-timesteps {checkpoint_steps}+)")
     print(f"TensorBoard logs: tensorboard --logdir {log_dir / 'tensorboard'}")
     return log_dir
 

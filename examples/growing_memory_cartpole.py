@@ -3,8 +3,8 @@ The 2005 paper's data-efficient NFQ on CartPole-v1 (nfq.yml's CartPole-v1 entry)
 every transition, refitted every round, in rounds that lengthen as the memory grows, with decaying exploration.
 Compare with the textbook's fresh batches (examples/solve_cartpole.py), which need many times more steps.
 
-Every 1024 steps the greedy policy plays 100 episodes; the run reports the first evaluation whose
-mean reaches 475 (the book's "solved") and a final score on 100 new episodes. A few minutes on one core.
+Every 1024 steps (every 4th round) the greedy policy plays 100 episodes; the run reports the first evaluation whose
+mean reaches 475 (the book's "solved") and a final score on 100 new episodes.
 
     python examples/growing_memory_cartpole.py [--total-timesteps 50000] [--seed 0]
 """

@@ -1,7 +1,6 @@
 """
 Quickstart: NFQ is used exactly like SB3's DQN. It trains the growing-memory NFQ of the 2005 paper on CartPole-v1
-with the package's settings for it (nfq.yml's CartPole-v1 entry; a minute or two on one core), evaluates it greedily
-and watches one episode.
+with the package's settings for it (nfq.yml's CartPole-v1 entry), evaluates it greedily and watches one episode.
 
 The textbook's own NFQ (fresh batches of 1024 transitions, the defaults of ``NFQ("MlpPolicy", "CartPole-v1")``)
 needs ten times the steps: ``examples/solve_cartpole.py`` (``make solve``) runs it until solved.

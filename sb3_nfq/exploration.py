@@ -46,10 +46,15 @@ def epsilon_greedy_predict(
     ``predict(deterministic=False)``: epsilon-greedy, with an independent coin flip for each observation of a batch.
 
     :param policy: the NFQ policy
-    :param observation: one observation or a batch of them
+    :param observation: one observation or a batch of them (arrays, or lists and tuples of numbers as SB3's
+        ``predict`` takes them)
     :param epsilon: probability of a random action
     :return: the action(s): one per observation of a batch, or a 0-d array for one observation
     """
+    if isinstance(observation, dict):
+        observation = {key: np.asarray(value) for key, value in observation.items()}
+    else:
+        observation = np.asarray(observation)
     vectorized = policy.is_vectorized_observation(observation)
     first = next(iter(observation.values())) if isinstance(observation, dict) else observation
     actions = epsilon_greedy(

@@ -5,6 +5,7 @@ epochs, taking rows of a batch.
 
 import contextlib
 import math
+import warnings
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -18,6 +19,9 @@ class NFQDivergenceError(FloatingPointError, ValueError):
     """
     The fitting loss became NaN or infinite. A ``FloatingPointError``, and also a ``ValueError`` so that
     RL Zoo / Optuna tuning prunes the diverging trial instead of stopping the whole study.
+
+    Before that, with ``gamma < 1``, :func:`check_q_values_bounded` warns (once per ``learn()``) when the fitted
+    Q-values go far past the largest value the rewards seen allow, and logs ``train/q_bound_exceeded``.
     """
 
 
@@ -37,6 +41,56 @@ def check_loss_is_finite(loss_value: float, round_number: int, iteration: int, i
             f"after {timesteps} env steps); training stopped before that step was applied. Check the rewards and "
             "observations for NaN/inf, or lower learning_rate, use loss='huber' or set max_grad_norm."
         )
+
+
+#: How far above the largest value the rewards allow the fitted Q-values may go before :func:`check_q_values_bounded`
+#: warns. Targets ``r + gamma * max Q(s', .)`` carry the max's overestimation into every round, so healthy training
+#: (a growing memory on CartPole, say) can overshoot the bound several times over before its values settle; a
+#: divergence multiplies them by orders of magnitude from one round to the next, so a factor of 100 delays the warning
+#: by a round or two and stays clear of that overshoot.
+Q_BOUND_MARGIN = 100.0
+
+
+def q_value_bound(max_abs_reward: float, gamma: float) -> float | None:
+    """
+    :param max_abs_reward: the largest ``|r|`` seen so far
+    :param gamma: the discount factor
+    :return: the largest ``|Q(s, a)|`` these rewards allow, ``max |r| / (1 - gamma)``; ``None`` for ``gamma = 1``,
+        where no such bound exists (undiscounted returns grow with the episode's length)
+    """
+    return None if gamma >= 1 else max_abs_reward / (1 - gamma)
+
+
+def check_q_values_bounded(
+    q_abs_max: float, max_abs_reward: float, gamma: float, round_number: int, timesteps: int, warn: bool
+) -> bool:
+    """
+    Divergence before it reaches NaN: with ``gamma < 1``, no return exceeds ``max |r| / (1 - gamma)``, so fitted
+    Q-values far above it (:data:`Q_BOUND_MARGIN` times it; for rewards near 0, :data:`Q_BOUND_MARGIN` times 1, the
+    scale of a network's first outputs) are bootstrapping on their own errors, which a loss that stays finite does
+    not show. With ``gamma = 1`` there is no such bound and nothing is checked.
+
+    :param q_abs_max: the largest ``|Q(s, a)|`` of the fitted batch
+    :param max_abs_reward: the largest ``|r|`` seen so far
+    :param gamma: the discount factor
+    :param round_number: the round just fitted (from 1)
+    :param timesteps: env steps taken so far
+    :param warn: whether to warn (``UserWarning``) if the bound is exceeded
+    :return: whether the bound is exceeded
+    """
+    bound = q_value_bound(max_abs_reward, gamma)
+    if bound is None or q_abs_max <= Q_BOUND_MARGIN * max(bound, 1.0):
+        return False
+    if warn:
+        warnings.warn(
+            f"NFQ's Q-values look divergent: after round {round_number} ({timesteps} env steps) the largest "
+            f"|Q(s, a)| of the fitted batch is {q_abs_max:.4g}, but rewards of at most {max_abs_reward:.4g} in size "
+            f"with gamma={gamma} bound every value by {bound:.4g} (warned above {Q_BOUND_MARGIN:g} times that). "
+            "Lower learning_rate, use loss='huber' or set max_grad_norm; train/q_bound_exceeded logs each round.",
+            UserWarning,
+            stacklevel=2,
+        )
+    return True
 
 
 @contextlib.contextmanager
@@ -62,12 +116,17 @@ def minibatch_indices(n_transitions: int, batch_size: int | None, device: th.dev
     :param batch_size: ``None`` for the whole memory at once, else the mini-batch size
     :param device: device of the index tensors
     :return: ``None`` (the whole memory) once, or the indices of one shuffled epoch of mini-batches
-        that covers every transition exactly once.
+        that covers every transition exactly once. A last mini-batch of one row (``n_transitions % batch_size ==
+        1``, ``batch_size`` above 1) joins the one before it, which then holds ``batch_size + 1`` rows: a BatchNorm
+        layer in training mode cannot normalise one row, and one row's gradient step would be the noisiest of all.
     """
     if batch_size is None or batch_size >= n_transitions:
         yield None
         return
-    yield from th.randperm(n_transitions, device=device).split(batch_size)
+    batches = list(th.randperm(n_transitions, device=device).split(batch_size))
+    if batch_size > 1 and len(batches[-1]) == 1:
+        batches[-2:] = [th.cat(batches[-2:])]
+    yield from batches
 
 
 def take_rows(observations: Any, rows: th.Tensor | slice) -> Any:

@@ -2,7 +2,9 @@
 
 import io
 import math
+import numbers
 import pathlib
+import warnings
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -23,10 +25,11 @@ from stable_baselines3.common.type_aliases import (
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
 from sb3_nfq import rounds
-from sb3_nfq.checkpoints import check_nfq_checkpoint, drop_retired
+from sb3_nfq.checkpoints import check_nfq_checkpoint, drop_retired, safe_custom_objects
 from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
     check_loss_is_finite,
+    check_q_values_bounded,
     loss_and_gradient,
     minibatch_indices,
     shared_successor_states,
@@ -36,6 +39,7 @@ from sb3_nfq.fitting import (
 from sb3_nfq.memory import make_memory, stored_transitions
 from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.parameters import (
+    DEFAULT_EXPLORATION_FRACTION,
     HYPERPARAMETERS,
     LossName,
     MemoryName,
@@ -73,9 +77,11 @@ class NFQ(OffPolicyAlgorithm):
         ``ceil(train_freq / n_envs)`` steps in each), or ``(n, "episode")``: ``n`` whole episodes (one env only)
     :param gradient_steps: Fitted iterations per round (the book's K), each covering the whole memory once
     :param batch_size: ``None`` (textbook): one full-batch gradient step per epoch; an integer: shuffled mini-batches
-        of this size that cover every transition once
+        of this size that cover every transition once (a last mini-batch of one row joins the one before it, so
+        that a BatchNorm layer never sees a mini-batch of one)
     :param buffer_size: Most transitions the memory holds; ``None``: one round (fresh memory; needed when rounds
-        count episodes), 1,000,000 (growing)
+        count episodes), 1,000,000 (growing). A fresh memory of rounds counted in steps always holds one round:
+        ``buffer_size`` is refused there
     :param memory: ``"fresh"`` (textbook): fit the round's transitions, then discard them; ``"growing"`` (2005
         paper): keep every transition (the oldest go past ``buffer_size``) and fit the whole memory every round
     :param round_fraction: With ``memory="growing"``, ``f``: a round collects ``max(train_freq, f * M)``
@@ -93,7 +99,8 @@ class NFQ(OffPolicyAlgorithm):
     :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
         larger errors pull on the fit no harder than this one (1.0: SB3 DQN's ``smooth_l1_loss``); a positive number
     :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from
-        ``exploration_initial_eps`` to ``exploration_final_eps``, in (0, 1]
+        ``exploration_initial_eps`` to ``exploration_final_eps``, in (0, 1]; a value other than the default is
+        refused when the two are equal (it would have no effect)
     :param exploration_initial_eps: Initial probability of a random action while collecting
     :param exploration_final_eps: Final probability of a random action while collecting
     :param max_grad_norm: Clip the gradient norm to this value; ``None`` (textbook): no clipping
@@ -140,7 +147,7 @@ class NFQ(OffPolicyAlgorithm):
         gamma: float = 1.0,
         loss: LossName = "mse",
         huber_delta: float = 1.0,
-        exploration_fraction: float = 0.1,
+        exploration_fraction: float = DEFAULT_EXPLORATION_FRACTION,
         exploration_initial_eps: float = 0.5,
         exploration_final_eps: float = 0.5,
         max_grad_norm: float | None = None,
@@ -197,6 +204,9 @@ class NFQ(OffPolicyAlgorithm):
         # The current round's length (env.step() calls; episodes, for episode rounds), fixed when it starts (0: not
         # yet): with round_fraction, it follows what the memory holds then.
         self._round_target = 0
+        # The largest |reward| fitted so far, and whether this learn() has warned that Q-values passed what it allows.
+        self._max_abs_reward = 0.0
+        self._q_bound_warned = False
 
         if _init_setup_model:
             self._setup_model()
@@ -204,6 +214,9 @@ class NFQ(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
         self._convert_train_freq()
+        # Saved as plain JSON beside SB3's pickle of train_freq, for NFQ.load(safe=True).
+        assert isinstance(self.train_freq, TrainFreq)
+        self._train_freq_json = [self.train_freq.frequency, self.train_freq.unit.value]
         if self.replay_buffer is None:
             self.replay_buffer = make_memory(
                 self.observation_space,
@@ -230,7 +243,7 @@ class NFQ(OffPolicyAlgorithm):
 
     def learn(
         self: SelfNFQ,
-        total_timesteps: int = DEFAULT_TOTAL_TIMESTEPS,
+        total_timesteps: int | None = None,
         callback: MaybeCallback = None,
         log_interval: int = 4,
         tb_log_name: str = "NFQ",
@@ -244,8 +257,10 @@ class NFQ(OffPolicyAlgorithm):
         fits it, and ``save_replay_buffer`` saves it. With ``train_freq`` counted in episodes, training runs in
         whole rounds and may go past ``total_timesteps``.
 
-        :param total_timesteps: The total number of environment steps to train on (default: 300,000, the
-            textbook's CartPole-v1 budget)
+        :param total_timesteps: The total number of environment steps to train on; ``None`` (NFQ's default, which
+            DQN does not have): 300,000, the textbook's CartPole-v1 budget, with a ``UserWarning`` saying so and how
+            to watch the progress (``progress_bar=True`` or ``verbose=1``), since at ``verbose=0`` nothing is
+            printed for the minutes it takes
         :param callback: callback(s) called at every step with state of the algorithm.
         :param log_interval: Log data every ``log_interval`` episodes
         :param tb_log_name: the name of the run for TensorBoard logging
@@ -253,12 +268,31 @@ class NFQ(OffPolicyAlgorithm):
         :param progress_bar: Display a progress bar using tqdm and rich.
         :return: the trained model
         """
+        if total_timesteps is None:
+            warnings.warn(
+                f"learn() was called without total_timesteps: NFQ trains for its default budget of "
+                f"{DEFAULT_TOTAL_TIMESTEPS:,} env steps (the textbook's CartPole-v1 budget), which takes minutes. "
+                "Pass progress_bar=True (or verbose=1) to watch the progress, or total_timesteps to choose the budget.",
+                UserWarning,
+                stacklevel=2,
+            )
+            total_timesteps = DEFAULT_TOTAL_TIMESTEPS
+        if (
+            isinstance(total_timesteps, bool)
+            or not isinstance(total_timesteps, numbers.Real)
+            or not total_timesteps > 0
+        ):
+            raise ValueError(
+                f"total_timesteps (env steps to train for) must be a positive number, got {total_timesteps!r}"
+            )
         total_timesteps, callback = self._setup_learn(
             total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
         )
         callback.on_training_start(locals(), globals())
         assert self.env is not None
+        self._q_bound_warned = False
 
+        self._restart_round_missing_from_memory()
         length = rounds.round_length(self.train_freq, self.n_envs)
         by_episode = length.unit == TrainFrequencyUnit.EPISODE
         while True:
@@ -291,6 +325,24 @@ class NFQ(OffPolicyAlgorithm):
 
         callback.on_training_end()
         return self
+
+    def _restart_round_missing_from_memory(self) -> None:
+        """
+        A model saved partway through a round and loaded without its replay buffer counts a partly collected round
+        that its memory does not hold: fitting it would fit a short round of the transitions still to come. Start
+        that round over instead, with a warning.
+        """
+        if self._round_steps <= self.replay_buffer.size():
+            return
+        warnings.warn(
+            f"This model was saved {self._round_steps} env.step() calls into round {self._n_rounds + 1}, but its "
+            f"memory holds {self.replay_buffer.size()}: it was loaded without its replay buffer. The round starts "
+            "over as a whole round; to go on with the collected transitions instead, call "
+            "model.load_replay_buffer(path) (of a buffer saved with save_replay_buffer) before learn().",
+            UserWarning,
+            stacklevel=3,
+        )
+        self._round_steps = self._round_episodes = self._round_target = 0
 
     def _round_size(self, length: TrainFreq) -> int:
         """:return: the current round's length, in episodes or ``env.step()`` calls (fixed when it starts)"""
@@ -351,6 +403,7 @@ class NFQ(OffPolicyAlgorithm):
         for iteration in range(gradient_steps):
             # Classic fitted Q-iteration regresses on targets fixed for the iteration; the textbook recomputes them.
             fixed = td_targets(self.q_net, batch, self.gamma) if self.target_mode == "fixed_per_iteration" else None
+            q_abs_max = th.zeros((), device=batch.rewards.device)  # over the last iteration: its steps cover the batch
             for _ in range(self.fit_epochs):
                 for indices in minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
                     data = take(batch, indices)
@@ -361,6 +414,7 @@ class NFQ(OffPolicyAlgorithm):
                     )
                     check_loss_is_finite(loss_value, self._n_rounds, iteration + 1, gradient_steps, self.num_timesteps)
                     losses.append(loss_value)
+                    q_abs_max = th.maximum(q_abs_max, q_values.detach().abs().max())
                     if self.max_grad_norm is not None:
                         th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
                     self.policy.optimizer.step()
@@ -372,6 +426,19 @@ class NFQ(OffPolicyAlgorithm):
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
+        self._max_abs_reward = max(self._max_abs_reward, batch.rewards.abs().max().item())
+        exceeded = check_q_values_bounded(
+            q_abs_max.item(),
+            self._max_abs_reward,
+            self.gamma,
+            self._n_rounds,
+            self.num_timesteps,
+            not self._q_bound_warned,
+        )
+        self._q_bound_warned |= exceeded
+        self.logger.record("train/q_abs_max", q_abs_max.item())
+        if self.gamma < 1:
+            self.logger.record("train/q_bound_exceeded", int(exceeded))
 
     @classmethod
     def for_dataset(
@@ -413,6 +480,7 @@ class NFQ(OffPolicyAlgorithm):
         )
         if not hasattr(self, "_logger"):
             self.set_logger(configure_logger(self.verbose, self.tensorboard_log, "NFQ_offline"))
+        self._q_bound_warned = False
         self._fit(dataset.samples(self.device), 1, iterations, self.batch_size)
         self.logger.dump(step=self.num_timesteps)
         return self
@@ -476,11 +544,23 @@ class NFQ(OffPolicyAlgorithm):
         custom_objects: dict[str, Any] | None = None,
         print_system_info: bool = False,
         force_reset: bool = True,
+        safe: bool = False,
         **kwargs: Any,
     ) -> SelfNFQ:
         """
         Load an NFQ model from a zip file saved by :meth:`save`; anything else raises a ``ValueError``.
         See :meth:`stable_baselines3.common.base_class.BaseAlgorithm.load` for the parameters.
+
+        Loading is code execution: SB3 stores what JSON cannot hold (spaces, schedules, classes in
+        ``policy_kwargs``) as cloudpickle, and a crafted checkpoint runs any code it likes when it is unpickled. Load
+        only checkpoints you trust, or use ``safe=True``, which unpickles nothing: it rebuilds every pickled entry
+        from the checkpoint's plain JSON (Discrete actions, the exploration schedule, ``train_freq``, a constant
+        ``learning_rate``, torch optimizer and activation classes in ``policy_kwargs``) and from ``env`` (the
+        observation space; without ``env``, only a small ``Box`` is rebuilt), loads the weights with
+        ``torch.load(weights_only=True)``, and refuses, naming it, an entry it cannot rebuild (a learning-rate
+        schedule, a custom features extractor class: pass those in ``custom_objects``). A safe load starts the next
+        ``learn()`` with new episodes and empty episode statistics. ``load_replay_buffer`` always unpickles its
+        file: load only replay buffers you trust.
 
         :param path: path to the file (or a file-like) where to load the agent from
         :param env: the new environment to run the loaded model on
@@ -488,9 +568,14 @@ class NFQ(OffPolicyAlgorithm):
         :param custom_objects: Dictionary of objects to replace upon loading.
         :param print_system_info: Whether to print system info from the saved model
         :param force_reset: Force call to ``reset()`` before training
+        :param safe: unpickle nothing (see above); ``False``: SB3's load, which runs the checkpoint's pickles
         :param kwargs: extra arguments to change the model when loading
         :return: new model instance with loaded parameters
         """
+        if safe:
+            if env is not None:  # wrapped as SB3's load wraps it (VecTransposeImage too), to read its spaces
+                env = cls._wrap_env(env)
+            custom_objects = safe_custom_objects(path, env, custom_objects, cls.policy_aliases)
         check_nfq_checkpoint(path, custom_objects)
         return super().load(
             path,

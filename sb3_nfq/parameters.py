@@ -23,6 +23,11 @@ TARGET_MODES = ("recompute_every_step", "fixed_per_iteration")
 TargetModeName = Literal["recompute_every_step", "fixed_per_iteration"]
 
 
+#: NFQ's (and DQN's) default ``exploration_fraction``: only another value is known to be chosen, and refused when it
+#: has no effect.
+DEFAULT_EXPLORATION_FRACTION = 0.1
+
+
 #: DQN's parameters that NFQ has no counterpart for, and what NFQ does instead.
 DQN_ONLY_PARAMETERS = {
     "learning_starts": "NFQ has no warm-up: it fits each round as soon as its train_freq transitions are collected",
@@ -35,6 +40,9 @@ DQN_ONLY_PARAMETERS = {
     "optimize_memory_usage": "NFQ's memory keeps next observations explicitly; bound it with buffer_size instead",
     "replay_buffer_class": "NFQ builds its own memory: choose memory='fresh' (textbook) or 'growing', and buffer_size",
     "replay_buffer_kwargs": "NFQ builds its own memory: choose memory='fresh' (textbook) or 'growing', and buffer_size",
+    "n_steps": (
+        "NFQ's TD targets are one-step, r + gamma * max_a' Q(s', a') (what DQN's default n_steps=1 does): drop n_steps"
+    ),
     "action_noise": "NFQ acts on Discrete actions, epsilon-greedy (exploration_initial_eps, exploration_final_eps)",
 }
 
@@ -154,6 +162,12 @@ def check_hyperparameters(
         )
     if memory not in MEMORIES:
         raise ValueError(f"memory must be one of {list(MEMORIES)}, got {memory!r}")
+    if buffer_size is not None and memory == "fresh" and unit == "step":
+        raise ValueError(
+            f"buffer_size={buffer_size} has no effect with memory='fresh' and train_freq counted in steps: the memory "
+            "holds one round of train_freq transitions and is discarded once it is fitted. For a memory that keeps "
+            "transitions across rounds, as DQN's replay buffer does, pass memory='growing'; else drop buffer_size."
+        )
     if round_fraction is not None:
         if not _is_positive_number(round_fraction):
             raise ValueError(f"round_fraction must be a positive number or None, got {round_fraction!r}")
@@ -186,6 +200,12 @@ def check_hyperparameters(
     ):
         if not 0.0 <= eps <= 1.0:
             raise ValueError(f"{name} must be a probability in [0, 1], got {eps!r}")
+    if exploration_initial_eps == exploration_final_eps and exploration_fraction != DEFAULT_EXPLORATION_FRACTION:
+        raise ValueError(
+            f"exploration_fraction={exploration_fraction} sets how long epsilon takes to go from "
+            f"exploration_initial_eps to exploration_final_eps, but both are {exploration_final_eps} (NFQ's default "
+            "is the textbook's constant 0.5): set them apart (DQN's are 1.0 and 0.05) or drop exploration_fraction"
+        )
     if max_grad_norm is not None and not max_grad_norm > 0:
         raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")
 

@@ -3,11 +3,11 @@ Breaks of the SB3 contract that SB3's own algorithm tests found in NFQ: the one-
 error for an ``(obs, info)`` tuple, targets computed in eval mode, rounds cut short, an empty memory.
 """
 
-import inspect
 import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -55,10 +55,10 @@ NORMALIZED = {"features_extractor_class": NormalizedFeatures, "net_arch": [16]}
 # 1. The design's one-liner
 
 
-def test_learn_has_the_textbooks_budget_as_default_and_the_one_liner_trains() -> None:
-    assert inspect.signature(NFQ.learn).parameters["total_timesteps"].default == 300_000
+def test_learn_has_the_textbooks_budget_as_default_and_the_one_liner_trains_saying_so() -> None:
     model = NFQ("MlpPolicy", "CartPole-v1")
-    model.learn(callback=StopAfterSteps(2_100))  # the one-liner, cut after two textbook rounds
+    with pytest.warns(UserWarning, match=r"without total_timesteps.* 300,000 env steps.*progress_bar=True"):
+        model.learn(callback=StopAfterSteps(2_100))  # the one-liner, cut after two textbook rounds
     assert model._total_timesteps == 300_000
     assert model._n_rounds == 2 and model.num_timesteps == 2_100
 
@@ -94,6 +94,17 @@ def test_predict_on_an_obs_info_tuple_explains_the_mistake_on_every_path(determi
     for _ in range(10):
         with pytest.raises(ValueError, match=r"obs, info = env\.reset\(\)"):
             model.predict(env.reset(seed=0), deterministic=deterministic)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_predict_takes_lists_and_tuples_of_numbers_as_dqn_does(deterministic: bool) -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", seed=0)  # exploration_rate 0.5: both the explore and the greedy branch
+    for _ in range(20):
+        for observation in ([0.0, 0.0, 0.0, 0.0], (0.0, 0.1, 0.0, -0.1)):
+            action, _ = model.predict(observation, deterministic=deterministic)  # type: ignore[arg-type]
+            assert isinstance(action, np.ndarray) and action.shape == () and int(action) in (0, 1)
+        actions, _ = model.predict([[0.0, 0.0, 0.0, 0.0]] * 3, deterministic=deterministic)  # type: ignore[arg-type]
+        assert isinstance(actions, np.ndarray) and actions.shape == (3,)
 
 
 # 4. Targets in eval mode
@@ -263,3 +274,11 @@ def test_a_growing_memory_resumed_in_a_new_process_goes_on_where_it_stopped(tmp_
     # 128 more steps: the second round completes at 128 and the third at 192; 36 of a fourth wait in the memory
     assert result["after"][:2] == [228, 3] and result["after"][3] == 228  # every transition is kept
     assert result["after"][2] > result["before"][2]
+
+
+def test_learn_with_a_budget_gives_no_budget_warning() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.learn(64)
+    assert model.num_timesteps == 64

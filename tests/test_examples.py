@@ -1,6 +1,7 @@
 """Every example runs as is (here on tiny budgets)."""
 
 import runpy
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -31,13 +32,27 @@ def test_examples_use_one_torch_thread_unless_told_otherwise() -> None:
 
 
 def test_callbacks_tensorboard_example_writes_evaluations_checkpoints_and_tensorboard(tmp_path: Path) -> None:
-    log_dir = _main("callbacks_tensorboard.py")(["--total-timesteps", "10240", "--log-dir", str(tmp_path)])
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*load_replay_buffer")  # the resume goes on with the round
+        log_dir = _main("callbacks_tensorboard.py")(["--total-timesteps", "10240", "--log-dir", str(tmp_path)])
     assert (log_dir / "eval" / "evaluations.npz").is_file()
     assert (log_dir / "best_model" / "best_model.zip").is_file()
-    assert sorted(p.name for p in (log_dir / "checkpoints").iterdir()) == ["nfq_10240_steps.zip"]
+    assert sorted(p.name for p in (log_dir / "checkpoints").iterdir()) == [
+        "nfq_10240_steps.zip",
+        "nfq_replay_buffer_10240_steps.pkl",
+    ]
     runs = sorted(p.name for p in (log_dir / "tensorboard").iterdir())
     assert runs[0] == "NFQ_1" and runs[1].startswith("NFQ_resumed"), runs
     assert NFQ.load(log_dir / "best_model" / "best_model.zip").n_envs == 2
+
+
+def test_callbacks_tensorboard_example_says_when_its_budget_is_too_small_for_a_checkpoint(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _main("callbacks_tensorboard.py")(["--total-timesteps", "2048", "--log-dir", str(tmp_path)])
+    printed = capsys.readouterr().out
+    assert "--total-timesteps 2048 is below 10240, the steps between checkpoints" in printed
+    assert "resume demo skipped (it needs --total-timesteps 10240+)" in printed
 
 
 def test_main_job_trains_evaluates_saves_and_reloads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,11 +11,13 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 from torch.nn import functional as F
 
 from sb3_nfq import NFQ
+from sb3_nfq.fitting import minibatch_indices
 from sb3_nfq.parameters import loss_function
 from tests.conftest import TransitionRecorder, record_fitting
 
@@ -143,6 +145,47 @@ def test_batch_size_splits_each_fitted_iteration_into_one_epoch_of_minibatches()
         ] * 4
         # the epoch covers every transition exactly once
         np.testing.assert_array_equal(np.sort(epoch, axis=0), np.sort(expected_obs, axis=0))
+
+
+@pytest.mark.parametrize(
+    ("n_transitions", "batch_size", "sizes"),
+    [(65, 32, [32, 33]), (33, 32, [33]), (66, 32, [32, 32, 2]), (97, 16, [16] * 5 + [17]), (5, 1, [1] * 5)],
+)
+def test_minibatch_indices_cover_each_transition_once_with_no_lone_last_row(
+    n_transitions: int, batch_size: int, sizes: list[int]
+) -> None:
+    batches = [batch for batch in minibatch_indices(n_transitions, batch_size, device=th.device("cpu"))]
+    assert all(batch is not None for batch in batches)
+    assert [len(batch) for batch in batches if batch is not None] == sizes
+    indices = th.cat([batch for batch in batches if batch is not None])
+    assert sorted(indices.tolist()) == list(range(n_transitions))
+
+
+class BatchNormFeatures(BaseFeaturesExtractor):
+    """A features extractor with a BatchNorm layer, which cannot normalise a mini-batch of one row in training."""
+
+    def __init__(self, observation_space: gym.spaces.Box) -> None:
+        super().__init__(observation_space, features_dim=8)
+        self.net = th.nn.Sequential(th.nn.Linear(observation_space.shape[0], 8), th.nn.BatchNorm1d(8))
+
+    def forward(self, observations: th.Tensor) -> th.Tensor:
+        return self.net(observations)
+
+
+def test_batch_norm_network_learns_a_round_whose_size_leaves_one_row_over() -> None:
+    model = NFQ(
+        "MlpPolicy",
+        "CartPole-v1",
+        train_freq=65,
+        batch_size=32,
+        gradient_steps=2,
+        seed=0,
+        policy_kwargs={"features_extractor_class": BatchNormFeatures},
+    )
+    fitting = record_fitting(model)
+    model.learn(65)
+    assert model._n_rounds == 1
+    assert [len(batch) for batch in fitting.grad_inputs] == [32, 33] * 2
 
 
 def _store(model: NFQ, obs: np.ndarray, action: int, reward: float, next_obs: np.ndarray, end: str) -> None:

@@ -1,11 +1,15 @@
 """Checkpoints: save -> load gives the same agent, optimizer state included, and training resumes."""
 
+import base64
 import io
+import json
+import pickle
 import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -187,3 +191,78 @@ def test_a_zip_with_retired_parameters_at_their_textbook_values_loads_without_th
         loaded = NFQ.load(old)
     for name, parameter in RETIRED_PARAMETERS.items():
         assert all(not hasattr(loaded, attribute) for attribute in (name, *parameter.saved))
+
+
+def test_a_model_saved_mid_round_and_loaded_without_its_memory_collects_a_whole_round(tmp_path: Path) -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=2, seed=0)
+    model.learn(40)  # 40 of the round's 64 transitions collected, not fitted
+    model.save(tmp_path / "model.zip")
+    loaded = NFQ.load(tmp_path / "model.zip", env=make_vec_env("CartPole-v1", seed=1))
+    fitting = record_fitting(loaded)
+    with pytest.warns(UserWarning, match=r"40 env.step\(\) calls into round 1.*holds 0.*load_replay_buffer"):
+        loaded.learn(24)
+    assert loaded._n_rounds == 0 and loaded._round_steps == 24  # no short round of 24 transitions fitted
+    loaded.learn(40, reset_num_timesteps=False)
+    assert loaded._n_rounds == 1
+    assert {len(batch) for batch in fitting.grad_inputs} == {64}
+
+
+class _CreatesFile:
+    """Unpickling this creates ``path``: what a crafted checkpoint could do with any code."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, tuple[str, str]]:
+        return open, (str(self.path), "w")
+
+
+def _replace_entry(source: Path, target: Path, key: str, value: Any) -> None:
+    """Copy the checkpoint ``source`` to ``target`` with the pickle of its ``data`` entry ``key`` replaced."""
+    with zipfile.ZipFile(source) as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(entries["data"])
+    data[key][":serialized:"] = base64.b64encode(pickle.dumps(value)).decode()
+    entries["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(target, "w") as archive:
+        for name, content in entries.items():
+            archive.writestr(name, content)
+
+
+def test_safe_load_runs_no_pickled_code_and_predicts_as_the_original(tmp_path: Path) -> None:
+    model = NFQ(
+        "MlpPolicy",
+        "CartPole-v1",
+        train_freq=64,
+        gradient_steps=2,
+        seed=0,
+        policy_kwargs={"net_arch": [32], "optimizer_class": th.optim.Adam, "activation_fn": th.nn.Tanh},
+    )
+    model.learn(128)
+    model.save(tmp_path / "nfq.zip")
+    marker = tmp_path / "marker"
+    _replace_entry(tmp_path / "nfq.zip", tmp_path / "crafted.zip", "exploration_schedule", _CreatesFile(marker))
+
+    for env in (None, gym.make("CartPole-v1")):
+        loaded = NFQ.load(tmp_path / "crafted.zip", env=env, safe=True)
+        assert not marker.exists()
+        obs = np.random.default_rng(0).normal(size=(200, 4)).astype(np.float32)
+        np.testing.assert_array_equal(
+            loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0]
+        )
+        assert loaded.policy.optimizer_class is th.optim.Adam and loaded.policy.activation_fn is th.nn.Tanh
+        assert (loaded.train_freq, loaded.exploration_schedule(0.5)) == (model.train_freq, 0.5)
+    loaded.learn(64)  # trains on from the safe load
+    assert loaded._n_rounds == 3
+
+    NFQ.load(tmp_path / "crafted.zip")  # the plain load runs the crafted pickle: the test's zip is a real attack
+    assert marker.exists()
+
+
+def test_safe_load_refuses_what_it_cannot_rebuild_naming_it(tmp_path: Path) -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=1, learning_rate=lambda progress: 1e-3)
+    model.save(tmp_path / "nfq.zip")
+    with pytest.raises(ValueError, match=r"cannot rebuild the checkpoint's 'learning_rate'.*custom_objects"):
+        NFQ.load(tmp_path / "nfq.zip", safe=True)
+    loaded = NFQ.load(tmp_path / "nfq.zip", safe=True, custom_objects={"learning_rate": 1e-3})
+    assert loaded.learning_rate == 1e-3

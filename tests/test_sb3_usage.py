@@ -237,8 +237,10 @@ def test_set_env_and_load_with_force_reset(tmp_path: Path, force_reset: bool) ->
     model.learn(100)  # ends mid-episode and mid-round
     last_obs = model._last_obs.copy()  # type: ignore[union-attr]
     model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "memory.pkl")  # the 36 transitions of the unfinished round
     env = make_vec_env("CartPole-v1", seed=5)
     loaded = NFQ.load(tmp_path / "model.zip", env=env, force_reset=force_reset)
+    loaded.load_replay_buffer(tmp_path / "memory.pkl")
     if force_reset:
         assert loaded._last_obs is None  # a new episode at the next learn()
     else:

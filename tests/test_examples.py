@@ -1,19 +1,26 @@
 """Every example runs as is (here on tiny budgets)."""
 
+import json
 import runpy
 from pathlib import Path
 from typing import Any
 
 import pytest
 import torch as th
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_nfq import NFQ
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
+def _module(name: str) -> dict[str, Any]:
+    return runpy.run_path(str(EXAMPLES / name))
+
+
 def _main(name: str) -> Any:
-    return runpy.run_path(str(EXAMPLES / name))["main"]
+    return _module(name)["main"]
 
 
 def test_quickstart_trains_for_its_budget_and_evaluates(capsys: pytest.CaptureFixture[str]) -> None:
@@ -47,10 +54,31 @@ def test_main_job_trains_evaluates_saves_and_reloads(tmp_path: Path, capsys: pyt
     )
     printed = capsys.readouterr().out
     assert status == 1  # two rounds cannot solve CartPole; the job says so
-    assert "NOT solved" in printed and "Final evaluation on 100 new greedy episodes" in printed
-    assert "Loaded agent, one greedy episode from that state" in printed
-    assert "Loaded agent at a new start state" in printed and "Q(s, left) = " in printed
+    assert "NOT solved" in printed and "Final evaluation on 100 new greedy episodes: " in printed
+    final = float(printed.split("Final evaluation on 100 new greedy episodes: ")[1].split()[0])
+    # The loaded zip replays the final evaluation's 100 episodes and reproduces its score.
+    assert f"the loaded agent on the same 100 episodes: {final:.1f}, " in printed
+    assert "The first of them, replayed step by step by the loaded agent: return " in printed
+    result = json.loads(printed.split("RESULT ")[1])
+    assert result["solved"] is False and result["confirmations_tried"] == 0
+    assert result["final_eval_mean"] == result["loaded_eval_mean"] == round(final, 1)
     assert NFQ.load(output).num_timesteps == 2048
+
+
+@pytest.mark.parametrize(("threshold", "steps", "confirmations"), [(0.0, 1024, 1), (1e9, 3072, 0)])
+def test_main_job_stops_only_on_a_confirmed_evaluation(threshold: float, steps: int, confirmations: int) -> None:
+    stop_when_confirmed = _module("solve_cartpole.py")["StopWhenConfirmed"](threshold, seed=20_000)
+    model = NFQ("MlpPolicy", "CartPole-v1", seed=0)
+    evaluation = EvalCallback(
+        make_vec_env("CartPole-v1", n_envs=10, seed=10_000),
+        n_eval_episodes=10,
+        eval_freq=1024,
+        callback_after_eval=stop_when_confirmed,
+        verbose=0,
+    )
+    model.learn(3072, callback=evaluation)
+    assert model.num_timesteps == steps
+    assert [seed for _, seed, _ in stop_when_confirmed.confirmations] == [20_000] * confirmations
 
 
 def test_custom_env_example_checks_its_env_and_trains_with_multi_input_policy(

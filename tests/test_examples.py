@@ -10,7 +10,10 @@ import torch as th
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
 
+from benchmarks import dqn_swap
 from sb3_nfq import NFQ
+from sb3_nfq.configs import nfq_kwargs
+from sb3_nfq.parameters import HYPERPARAMETERS
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -33,7 +36,7 @@ def test_examples_use_one_torch_thread_unless_told_otherwise() -> None:
     th.set_num_threads(2)
     _main("quickstart.py")(["--total-timesteps", "1024"])
     assert th.get_num_threads() == 1
-    for example in sorted(EXAMPLES.glob("*.py")):
+    for example in sorted(EXAMPLES.rglob("*.py")):
         assert '"--threads", type=int, default=1' in example.read_text(), example.name
 
 
@@ -106,3 +109,24 @@ def test_offline_minari_example_records_a_local_dataset_and_fits_it(tmp_path: Pa
 def test_growing_memory_example_keeps_every_transition(capsys: pytest.CaptureFixture[str]) -> None:
     _main("growing_memory_cartpole.py")(["--total-timesteps", "2048"])
     assert "Memory holds 2048 transitions after 2048 steps. 2 evaluations;" in capsys.readouterr().out
+
+
+def test_coming_from_dqn_nfq_script_uses_the_front_loaded_config_and_dqns_buffer_size() -> None:
+    env = make_vec_env("CartPole-v1", n_envs=4, seed=0)
+    script = _module("coming_from_dqn/nfq_cartpole.py")["make_model"](env, 0)
+    config = NFQ("MlpPolicy", env, seed=0, buffer_size=100_000, **nfq_kwargs("nfq-front-loaded", "CartPole-v1"))
+    for name in HYPERPARAMETERS - {"learning_rate"}:  # one a LinearSchedule, the other the zoo's function
+        assert getattr(script, name) == getattr(config, name), name
+    assert script.policy_kwargs == config.policy_kwargs
+    progress = (1.0, 0.5, 0.0)
+    assert [script.lr_schedule(p) for p in progress] == pytest.approx([config.lr_schedule(p) for p in progress])
+
+
+@pytest.mark.slow  # two fresh processes: about a minute on a busy 2-core machine
+def test_coming_from_dqn_scripts_train_save_load_and_evaluate_at_the_same_budget(tmp_path: Path) -> None:
+    results = [dqn_swap.run_script(name, 2048, 0, tmp_path) for name in ("dqn_cartpole.py", "nfq_cartpole.py")]
+    assert [(r["algo"], r["steps"], r["threads"]) for r in results] == [("DQN", 2048, 1), ("NFQ", 2048, 1)]
+    assert (tmp_path / "dqn" / "dqn_cartpole.zip").is_file() and (tmp_path / "nfq" / "nfq_cartpole.zip").is_file()
+    assert NFQ.load(tmp_path / "nfq" / "nfq_cartpole.zip").memory == "growing"
+    block = dqn_swap.table(results)
+    assert "| `examples/coming_from_dqn/nfq_cartpole.py` | 2,048 | 1 |" in block

@@ -1,5 +1,6 @@
 """Every example runs as is (here on tiny budgets)."""
 
+import json
 import runpy
 import warnings
 from pathlib import Path
@@ -7,14 +8,23 @@ from typing import Any
 
 import pytest
 import torch as th
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.env_util import make_vec_env
 
+from benchmarks import dqn_swap
 from sb3_nfq import NFQ
+from sb3_nfq.configs import nfq_kwargs
+from sb3_nfq.parameters import HYPERPARAMETERS
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
+def _module(name: str) -> dict[str, Any]:
+    return runpy.run_path(str(EXAMPLES / name))
+
+
 def _main(name: str) -> Any:
-    return runpy.run_path(str(EXAMPLES / name))["main"]
+    return _module(name)["main"]
 
 
 def test_quickstart_trains_for_its_budget_and_evaluates(capsys: pytest.CaptureFixture[str]) -> None:
@@ -27,7 +37,7 @@ def test_examples_use_one_torch_thread_unless_told_otherwise() -> None:
     th.set_num_threads(2)
     _main("quickstart.py")(["--total-timesteps", "1024"])
     assert th.get_num_threads() == 1
-    for example in sorted(EXAMPLES.glob("*.py")):
+    for example in sorted(EXAMPLES.rglob("*.py")):
         assert '"--threads", type=int, default=1' in example.read_text(), example.name
 
 
@@ -62,10 +72,31 @@ def test_main_job_trains_evaluates_saves_and_reloads(tmp_path: Path, capsys: pyt
     )
     printed = capsys.readouterr().out
     assert status == 1  # two rounds cannot solve CartPole; the job says so
-    assert "NOT solved" in printed and "Final evaluation on 100 new greedy episodes" in printed
-    assert "Loaded agent, one greedy episode from that state" in printed
-    assert "Loaded agent at a new start state" in printed and "Q(s, left) = " in printed
+    assert "NOT solved" in printed and "Final evaluation on 100 new greedy episodes: " in printed
+    final = float(printed.split("Final evaluation on 100 new greedy episodes: ")[1].split()[0])
+    # The loaded zip replays the final evaluation's 100 episodes and reproduces its score.
+    assert f"the loaded agent on the same 100 episodes: {final:.1f}, " in printed
+    assert "The first of them, replayed step by step by the loaded agent: return " in printed
+    result = json.loads(printed.split("RESULT ")[1])
+    assert result["solved"] is False and result["confirmations_tried"] == 0
+    assert result["final_eval_mean"] == result["loaded_eval_mean"] == round(final, 1)
     assert NFQ.load(output).num_timesteps == 2048
+
+
+@pytest.mark.parametrize(("threshold", "steps", "confirmations"), [(0.0, 1024, 1), (1e9, 3072, 0)])
+def test_main_job_stops_only_on_a_confirmed_evaluation(threshold: float, steps: int, confirmations: int) -> None:
+    stop_when_confirmed = _module("solve_cartpole.py")["StopWhenConfirmed"](threshold, seed=20_000)
+    model = NFQ("MlpPolicy", "CartPole-v1", seed=0)
+    evaluation = EvalCallback(
+        make_vec_env("CartPole-v1", n_envs=10, seed=10_000),
+        n_eval_episodes=10,
+        eval_freq=1024,
+        callback_after_eval=stop_when_confirmed,
+        verbose=0,
+    )
+    model.learn(3072, callback=evaluation)
+    assert model.num_timesteps == steps
+    assert [seed for _, seed, _ in stop_when_confirmed.confirmations] == [20_000] * confirmations
 
 
 def test_custom_env_example_checks_its_env_and_trains_with_multi_input_policy(
@@ -93,3 +124,24 @@ def test_offline_minari_example_records_a_local_dataset_and_fits_it(tmp_path: Pa
 def test_growing_memory_example_keeps_every_transition(capsys: pytest.CaptureFixture[str]) -> None:
     _main("growing_memory_cartpole.py")(["--total-timesteps", "2048"])
     assert "Memory holds 2048 transitions after 2048 steps. 2 evaluations;" in capsys.readouterr().out
+
+
+def test_coming_from_dqn_nfq_script_uses_the_front_loaded_config_and_dqns_buffer_size() -> None:
+    env = make_vec_env("CartPole-v1", n_envs=4, seed=0)
+    script = _module("coming_from_dqn/nfq_cartpole.py")["make_model"](env, 0)
+    config = NFQ("MlpPolicy", env, seed=0, buffer_size=100_000, **nfq_kwargs("nfq-front-loaded", "CartPole-v1"))
+    for name in HYPERPARAMETERS - {"learning_rate"}:  # one a LinearSchedule, the other the zoo's function
+        assert getattr(script, name) == getattr(config, name), name
+    assert script.policy_kwargs == config.policy_kwargs
+    progress = (1.0, 0.5, 0.0)
+    assert [script.lr_schedule(p) for p in progress] == pytest.approx([config.lr_schedule(p) for p in progress])
+
+
+@pytest.mark.slow  # two fresh processes: about a minute on a busy 2-core machine
+def test_coming_from_dqn_scripts_train_save_load_and_evaluate_at_the_same_budget(tmp_path: Path) -> None:
+    results = [dqn_swap.run_script(name, 2048, 0, tmp_path) for name in ("dqn_cartpole.py", "nfq_cartpole.py")]
+    assert [(r["algo"], r["steps"], r["threads"]) for r in results] == [("DQN", 2048, 1), ("NFQ", 2048, 1)]
+    assert (tmp_path / "dqn" / "dqn_cartpole.zip").is_file() and (tmp_path / "nfq" / "nfq_cartpole.zip").is_file()
+    assert NFQ.load(tmp_path / "nfq" / "nfq_cartpole.zip").memory == "growing"
+    block = dqn_swap.table(results)
+    assert "| `examples/coming_from_dqn/nfq_cartpole.py` | 2,048 | 1 |" in block

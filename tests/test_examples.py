@@ -126,10 +126,10 @@ def test_growing_memory_example_keeps_every_transition(capsys: pytest.CaptureFix
     assert "Memory holds 2048 transitions after 2048 steps. 2 evaluations;" in capsys.readouterr().out
 
 
-def test_coming_from_dqn_nfq_script_uses_the_front_loaded_config_and_dqns_buffer_size() -> None:
+def test_coming_from_dqn_nfq_script_uses_the_shipped_cartpole_entry_and_dqns_buffer_size() -> None:
     env = make_vec_env("CartPole-v1", n_envs=4, seed=0)
     script = _module("coming_from_dqn/nfq_cartpole.py")["make_model"](env, 0)
-    config = NFQ("MlpPolicy", env, seed=0, buffer_size=100_000, **nfq_kwargs("nfq-front-loaded", "CartPole-v1"))
+    config = NFQ("MlpPolicy", env, seed=0, buffer_size=100_000, **nfq_kwargs("CartPole-v1"))
     for name in HYPERPARAMETERS - {"learning_rate"}:  # one a LinearSchedule, the other the zoo's function
         assert getattr(script, name) == getattr(config, name), name
     assert script.policy_kwargs == config.policy_kwargs

@@ -1,6 +1,7 @@
 """
 dqn_cartpole.py with DQN swapped for NFQ, and NFQ given the project's recommended growing-memory CartPole settings
-(nfq-front-loaded); everything else is the DQN script's. Diff the two to see the swap.
+(the CartPole-v1 entry of sb3_nfq/hyperparams/nfq.yml, its KeepBestCallback included); everything else is the DQN
+script's. Diff the two to see the swap.
 
     python examples/coming_from_dqn/nfq_cartpole.py [--total-timesteps 20000] [--seed 0] [--threads 1] [--log-dir runs]
 """
@@ -18,14 +19,14 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_nfq import NFQ
+from sb3_nfq import NFQ, KeepBestCallback
 
 
 def make_model(env: VecEnv, seed: int) -> NFQ:
     """
     :param env: the training envs
     :param seed: the model's seed
-    :return: NFQ with the settings of sb3_nfq/hyperparams/nfq-front-loaded.yml for CartPole-v1
+    :return: NFQ with the settings of sb3_nfq/hyperparams/nfq.yml's CartPole-v1 entry
     """
     return NFQ(
         "MlpPolicy",
@@ -83,6 +84,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             log_path=str(log_dir / "eval"),
         ),
         CheckpointCallback(save_freq=2500, save_path=str(log_dir / "checkpoints"), name_prefix="nfq_cartpole"),
+        # The entry's callback: learn() ends with the weights whose training episodes scored best
+        KeepBestCallback(),
     ]
     start = time.perf_counter()
     model.learn(args.total_timesteps, callback=callbacks)

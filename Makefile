@@ -1,6 +1,6 @@
 # Two commands set everything up on a fresh machine (see README.md):
 #   make solve   - train NFQ with the textbook defaults on CartPole-v1 until solved, evaluate, save, load
-#   make test    - run the test suite (the slow learning test included)
+#   make test    - run the test suite's fast tier (what developers run often; `make test-slow` runs the rest)
 # `make solve` installs the package alone; `make test` adds its zoo and offline extras and the dev group of
 # pyproject.toml (tests, lint, the benchmark suite), which needs pip >= 25.1.
 # torch is installed first, from its CPU build: left to resolve stable-baselines3's plain `torch` requirement, pip
@@ -19,7 +19,7 @@ LOWEST ?= .venv-lowest
 LOWEST_TESTS := tests/test_fitting.py tests/test_contract.py tests/test_sb3_integration.py tests/test_sb3_usage.py \
 	tests/test_variants.py tests/test_bad_input.py tests/test_save_load.py tests/test_callbacks.py
 
-.PHONY: setup solve test lint docs test-lowest check-zoo-extra check-sdist
+.PHONY: setup solve test test-slow lint docs test-lowest check-zoo-extra check-sdist
 
 setup: $(DEV)
 
@@ -37,8 +37,13 @@ $(DEV): $(CORE)
 solve: $(CORE)
 	$(PYTHON) examples/solve_cartpole.py
 
+# The fast tier: everything but the tests marked slow (learning to a score, the zoo and Optuna in subprocesses, process
+# pools). CI runs both tiers.
 test: $(DEV)
-	$(PYTHON) -m pytest -p no:cacheprovider
+	$(PYTHON) -m pytest -p no:cacheprovider -m "not slow"
+
+test-slow: $(DEV)
+	$(PYTHON) -m pytest -p no:cacheprovider -m slow
 
 # The API documentation (Sphinx, SB3's layout), warnings as errors: docs/_build/html/index.html
 docs: $(DEV)

@@ -611,7 +611,7 @@ def _run_ray(jobs: Sequence[Job], address: str, workers: int, on_result: OnResul
             ray.init(address=address, runtime_env=runtime_env)
     failures = 0
     try:
-        remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
+        remote = ray.remote(num_cpus=1, max_retries=0, max_calls=1)(run_job)  # a fresh process per job
         pending = {remote.remote(job): job for job in jobs}
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)

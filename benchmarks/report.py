@@ -544,11 +544,9 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
     lines = [
         "## CartPole-v1 under the book's criterion",
         "",
-        "The book's own protocol (`python -m benchmarks.run --protocol book`, `sb3_nfq.StopTrainingOnBookCriterion`): "
-        "after every training episode the greedy policy plays one episode on a separate env; a run is solved, and "
-        "stops, when the mean of the last 100 of those returns reaches 475. Steps and episodes are counted to that "
-        "point; an unsolved run counts as what it trained (≥). Training seconds exclude the evaluation episodes; the "
-        "final score is 100 new greedy episodes after training. Both implementations run the textbook settings.",
+        "The book's protocol (`--protocol book`, `sb3_nfq.StopTrainingOnBookCriterion`): after every training "
+        "episode the greedy policy plays one episode on a separate env; a run is solved, and stops, when the mean of "
+        "the last 100 of those returns reaches 475. Both implementations run the textbook settings.",
         "",
         "Runner command(s): "
         + "; ".join(f"`{command}`" for command in _unique(records, "command"))
@@ -677,18 +675,12 @@ def build_report(
         "",
         "Code revision(s): " + ", ".join(f"`{rev}`" for rev in _unique(records, "git")),
         "",
-        "Criterion (every algorithm): at step 0, after each NFQ/reference round (for DQN: at the first rollout "
-        "start) at or after each multiple of `eval_every` env steps, and at the end of training, the greedy policy "
-        "plays 100 episodes on separate envs; a run is solved at the first evaluation whose mean return reaches the "
-        "threshold. Training goes on to the budget, then 100 new greedy episodes give the final score; runs marked "
+        "Criterion, timing and record fields: [benchmarks/README.md](../README.md#what-is-measured). Runs marked "
         "(stopped at solve) ran with `--stop-at-solve`: their final score is taken at the solve. A run whose loss "
-        "became non-finite stops there (`NFQDivergenceError`); it counts as unsolved unless it had solved before. "
-        "Training seconds exclude evaluation time. Learning curves: mean over seeds with a 95% bootstrap band, drawn "
-        "while at least half of a row's runs are still training.",
-        "",
-        "Steps to solve: unsolved runs count as the steps they trained (censored), so a value marked ≥ is a lower "
-        f"bound. IQM and its 95% CI: rliable `get_interval_estimates` (percentile bootstrap over runs, "
-        f"{BOOTSTRAP_REPS} resamples).",
+        "became non-finite (`NFQDivergenceError`) counts as unsolved unless it had solved before. Unsolved runs count "
+        "as the steps they trained: a value marked ≥ is a lower bound. IQM 95% CIs: rliable "
+        f"`get_interval_estimates` ({BOOTSTRAP_REPS} bootstrap resamples over runs). Learning curves: mean over seeds "
+        "with a 95% bootstrap band, drawn while at least half of a row's runs are still training.",
         "",
         f"Seeds: the measured rows run on seeds {seeds} (`benchmarks.configs.SEEDS`); the shipped configs were chosen "
         f"by their results on the same seeds, so their rows carry that selection. Seeds {held_out} "

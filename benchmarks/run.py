@@ -285,12 +285,8 @@ class Evaluations:
     ) -> None:
         eval_normalize = None if normalize is None else {**normalize, "training": False, "norm_reward": False}
         self.env = make_env(env_id, n_episodes, normalize=eval_normalize)
-        self.n_episodes, self.threshold, self.eval_every, self.stop_at_solve = (
-            n_episodes,
-            threshold,
-            eval_every,
-            stop_at_solve,
-        )
+        self.n_episodes, self.threshold = n_episodes, threshold
+        self.eval_every, self.stop_at_solve = eval_every, stop_at_solve
         self.curve: list[list[float]] = []
         self.episode_ends: list[list[int]] = []
         self.steps_to_solve: int | None = None

@@ -313,29 +313,40 @@ class Evaluations:
             self._ended += int(done)
             self._terminated += int(done and not info.get("TimeLimit.truncated", False))
 
+    def evaluate(self, steps: int, model: Any, seed_base: int, train_env: VecEnv | None = None) -> None:
+        """
+        Add a point to the learning curve.
+
+        :param steps: env steps trained so far
+        :param model: what ``evaluate_policy`` plays
+        :param seed_base: seed of episode 0
+        :param train_env: the training env, whose normalisation statistics the evaluation uses
+        """
+        start = time.perf_counter()
+        mean = float(np.mean(self.returns(model, seed_base, train_env)))
+        self.eval_seconds += time.perf_counter() - start
+        self.curve.append([steps, mean])
+        self.episode_ends.append([steps, self._ended, self._terminated])
+        self._ended = self._terminated = 0
+        self._next_eval = (steps // self.eval_every + 1) * self.eval_every
+        if mean >= self.threshold and self.steps_to_solve is None:
+            self.steps_to_solve = steps
+
     def maybe_evaluate(self, steps: int, model: Any, seed_base: int, train_env: VecEnv | None = None) -> bool:
         """
-        :param steps: env steps trained so far
-        :return: whether training should go on (see :meth:`returns` for the other parameters)
+        Evaluate if a multiple of ``eval_every`` was reached (see :meth:`evaluate` for the parameters).
+
+        :return: whether training should go on
         """
         if steps >= self._next_eval:
-            start = time.perf_counter()
-            mean = float(np.mean(self.returns(model, seed_base, train_env)))
-            self.eval_seconds += time.perf_counter() - start
-            self.curve.append([steps, mean])
-            self.episode_ends.append([steps, self._ended, self._terminated])
-            self._ended = self._terminated = 0
-            self._next_eval = (steps // self.eval_every + 1) * self.eval_every
-            if mean >= self.threshold and self.steps_to_solve is None:
-                self.steps_to_solve = steps
+            self.evaluate(steps, model, seed_base, train_env)
         self.stopped = self.stop_at_solve and self.steps_to_solve is not None
         return not self.stopped
 
     def finish(self, steps: int, model: Any, seed_base: int, train_env: VecEnv | None = None) -> None:
         """Evaluate the final policy unless it was just evaluated or training stopped at the solve."""
         if not self.stopped and (not self.curve or self.curve[-1][0] != steps):
-            self._next_eval = 0
-            self.maybe_evaluate(steps, model, seed_base, train_env)
+            self.evaluate(steps, model, seed_base, train_env)
 
 
 class RoundEndEvaluation(BaseCallback):

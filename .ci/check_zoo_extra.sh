@@ -10,6 +10,9 @@ py="$work/venv/bin/python"
 "$py" -m pip install --quiet "${TORCH:-torch==2.13.0}"  # the CPU build first, as the README says
 "$py" -m pip wheel --quiet --no-deps -w "$work/dist" "$repo"
 wheel="$(ls "$work"/dist/sb3_nfq-*.whl)"
+# The package's one hyperparameter file is its only YAML (the benchmark's named configs stay in the repository)
+"$py" -c 'import sys, zipfile; yml = [n for n in zipfile.ZipFile(sys.argv[1]).namelist() if n.endswith((".yml", ".yaml"))]
+assert yml == ["sb3_nfq/hyperparams/nfq.yml"], yml' "$wheel"
 "$py" -m pip install --quiet "$wheel[zoo]"
 cd "$work"
 export OMP_NUM_THREADS=1 SDL_VIDEODRIVER=dummy  # enjoy renders with pygame: no display here

@@ -1,6 +1,7 @@
 """
 Quickstart: NFQ is used exactly like SB3's DQN. It trains the growing-memory NFQ of the 2005 paper on CartPole-v1
-(about half a minute on one core), evaluates it greedily and watches one episode.
+with the package's settings for it (nfq.yml's CartPole-v1 entry; a minute or two on one core), evaluates it greedily
+and watches one episode.
 
 The textbook's own NFQ (fresh batches of 1024 transitions, the defaults of ``NFQ("MlpPolicy", "CartPole-v1")``)
 needs ten times the steps: ``examples/solve_cartpole.py`` (``make solve``) runs it until solved.
@@ -16,7 +17,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.monitor import Monitor
 
 from sb3_nfq import NFQ
-from sb3_nfq.configs import nfq_kwargs
+from sb3_nfq.configs import nfq_callbacks, nfq_kwargs
 
 
 def main(argv: list[str] | None = None) -> float:
@@ -32,10 +33,10 @@ def main(argv: list[str] | None = None) -> float:
     args = parser.parse_args(argv)
     th.set_num_threads(args.threads)
 
-    # The benchmark's "nfq-shared" settings (sb3_nfq/hyperparams/nfq-shared.yml): memory="growing" keeps every
-    # transition and refits on all of them every 256 steps, with Adam and a 64-64 network.
-    model = NFQ("MlpPolicy", gym.make("CartPole-v1"), seed=0, **nfq_kwargs("nfq-shared", "CartPole-v1"))
-    model.learn(total_timesteps=args.total_timesteps, progress_bar=True)
+    # sb3_nfq/hyperparams/nfq.yml's CartPole-v1 entry: memory="growing" keeps every transition and refits on all of
+    # them, in rounds that lengthen as the memory grows; its callback ends training on the best-scoring fit.
+    model = NFQ("MlpPolicy", gym.make("CartPole-v1"), seed=0, **nfq_kwargs("CartPole-v1"))
+    model.learn(total_timesteps=args.total_timesteps, callback=nfq_callbacks("CartPole-v1"), progress_bar=True)
 
     env = Monitor(gym.make("CartPole-v1"))
     mean_return, std_return = evaluate_policy(model, env, n_eval_episodes=20, deterministic=True)

@@ -1,6 +1,6 @@
 """sb3-nfq: Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 algorithm."""
 
-from sb3_nfq.callbacks import BookCriterion, StopTrainingOnBookCriterion
+from sb3_nfq.callbacks import BookCriterion, KeepBestCallback, StopTrainingOnBookCriterion
 from sb3_nfq.fitting import NFQDivergenceError
 from sb3_nfq.nfq import NFQ
 from sb3_nfq.offline import TransitionDataset
@@ -12,6 +12,7 @@ __all__ = [
     "NFQ",
     "BookCriterion",
     "CnnPolicy",
+    "KeepBestCallback",
     "MlpPolicy",
     "MultiInputPolicy",
     "NFQDivergenceError",

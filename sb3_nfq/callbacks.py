@@ -1,19 +1,24 @@
 """
-The book's definition of "solved", as an SB3 callback.
+Callbacks for any SB3 algorithm: the book's definition of "solved", and ending training with the best weights.
 
 "Grokking Deep Reinforcement Learning" trains its value-based agents episode by episode: after *every* training
 episode the greedy policy plays *one* evaluation episode, and training stops once the mean of the last 100
 evaluation returns reaches the goal (475 on CartPole-v1). :class:`BookCriterion` is that bookkeeping, with no SB3
-in it; :class:`StopTrainingOnBookCriterion` drives it from any SB3 algorithm's ``learn()``.
+in it; :class:`StopTrainingOnBookCriterion` drives it from any SB3 algorithm's ``learn()``. :class:`KeepBestCallback`
+ends ``learn()`` with the policy's best-scoring weights, scored by the training episodes' returns.
 """
 
+import copy
 import time
 from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import VecMonitor, is_vecenv_wrapped
 
 from sb3_nfq.parameters import is_positive_int
 
@@ -163,3 +168,73 @@ class StopTrainingOnBookCriterion(BaseCallback):
             if holds and self.stop_at_solve:
                 keep_training = False
         return keep_training
+
+
+class KeepBestCallback(BaseCallback):
+    """
+    End ``learn()`` with the best-scoring weights of the run instead of the last ones, at no extra env steps, for an
+    SB3 off-policy algorithm (NFQ, DQN, QR-DQN, ...). The policy's weights change in ``train()``, between rollouts,
+    not while a rollout is collected: at the end of each rollout, the weights that collected it are scored by the
+    mean return of the training episodes that ended during it (the ``Monitor``'s returns, so exploratory ones), and
+    a score at least the best so far keeps a copy of the policy's weights (``policy.state_dict()``: DQN's target
+    network included) aside. Weights under which no episode ended are not scored. At the end of ``learn()`` the best
+    weights are loaded back into the policy, so the model ends with them (and ``model.save`` then saves them).
+    Training itself is unchanged: each fit starts from the weights the previous one left.
+
+    The training env must report its episodes' returns: each env wrapped in ``Monitor`` (as ``make_vec_env`` and an
+    env id do) or the ``VecEnv`` in ``VecMonitor``. Logs ``train/best_score``. The best score and weights carry over
+    when the same callback is passed to a later ``learn()``.
+
+    .. code-block:: python
+
+        model = NFQ("MlpPolicy", "CartPole-v1", seed=0)
+        keep_best = KeepBestCallback()
+        model.learn(100_000, callback=keep_best)
+        print(keep_best.best_score)
+
+    :param verbose: 1 prints each new best score
+    """
+
+    def __init__(self, verbose: int = 0) -> None:
+        super().__init__(verbose)
+        #: The best mean return so far (``None``: no weights scored yet).
+        self.best_score: float | None = None
+        #: A copy of the policy's ``state_dict()`` that scored ``best_score`` (``None``: none yet).
+        self.best_weights: dict[str, th.Tensor] | None = None
+        # Returns of the training episodes that ended since the last judgement.
+        self._returns: list[float] = []
+
+    def _init_callback(self) -> None:
+        env = self.training_env
+        if not (is_vecenv_wrapped(env, VecMonitor) or all(env.env_is_wrapped(Monitor))):
+            raise ValueError(
+                "KeepBestCallback judges the policy's weights by the returns of the training episodes, which a Monitor "
+                "wrapper reports, but this env has none: wrap each env in stable_baselines3.common.monitor.Monitor "
+                "(make_vec_env and an env id given to the model do), or the VecEnv in VecMonitor."
+            )
+
+    def _on_step(self) -> bool:
+        ended = [info for info, done in zip(self.locals["infos"], self.locals["dones"], strict=True) if done]
+        self._returns += [float(info["episode"]["r"]) for info in ended]
+        return True
+
+    def _on_rollout_end(self) -> None:
+        self._judge()
+
+    def _on_training_end(self) -> None:
+        self._judge()  # episodes after the last rollout's end: a callback stopped collection early
+        if self.best_weights is not None:
+            self.model.policy.load_state_dict(self.best_weights)
+
+    def _judge(self) -> None:
+        """Score the weights that collected the episodes ended since the last judgement; keep them if the best."""
+        if not self._returns:
+            return
+        score = float(np.mean(self._returns))
+        self._returns = []
+        if self.best_score is None or score >= self.best_score:
+            self.best_score = score
+            self.best_weights = copy.deepcopy(self.model.policy.state_dict())
+            if self.verbose >= 1:
+                print(f"New best score {score:.2f} after {self.num_timesteps} steps")
+        self.logger.record("train/best_score", self.best_score)

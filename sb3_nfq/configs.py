@@ -1,98 +1,55 @@
 """
-The NFQ configs this project ships and measures, as data: zoo-format YAML files in ``sb3_nfq/hyperparams/``, one
-per named config (``nfq-book``, ``nfq-shared``, ``nfq-tuned``, ...; a changed config gets a new name), the
-conversion of their entries into ``NFQ`` keyword arguments, as the RL Zoo does it, and ``nfq.yml``, the RL Zoo
-bridge's file, generated from the config :data:`RECOMMENDED` for each env (``python -m sb3_nfq.configs``).
+NFQ's hyperparameters as data: ``sb3_nfq/hyperparams/nfq.yml`` (:data:`ZOO_FILE`), edited by hand in the RL
+Baselines3 Zoo's format (one entry per env id, ``default`` for the others, ``atari`` for every Atari game; each entry
+says where it was measured), and the reading of a zoo entry as the RL Zoo's ``ExperimentManager`` reads it.
 
 .. code-block:: python
 
     from sb3_nfq import NFQ
-    from sb3_nfq.configs import nfq_kwargs
+    from sb3_nfq.configs import nfq_callbacks, nfq_kwargs
 
-    model = NFQ("MlpPolicy", "CartPole-v1", **nfq_kwargs("nfq-shared", "CartPole-v1"))
+    model = NFQ("MlpPolicy", "CartPole-v1", **nfq_kwargs("CartPole-v1"))
+    model.learn(50_000, callback=nfq_callbacks("CartPole-v1"))
 """
 
 import ast
 import contextlib
+import importlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch as th
 import yaml
+from stable_baselines3.common.callbacks import BaseCallback
 from torch import nn
 
-#: Where the YAML files live (shipped with the package).
-HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
-#: Keys of a zoo entry that are not ``NFQ`` keyword arguments: the budget, the policy and the number of envs.
-ZOO_KEYS = ("n_timesteps", "policy", "n_envs")
+#: The hyperparameter file shipped with the package, read by the RL Zoo bridge (``python -m sb3_nfq.zoo train``).
+ZOO_FILE = Path(__file__).resolve().parent / "hyperparams" / "nfq.yml"
 #: The entry of every env without one of its own (the RL Zoo's convention).
 DEFAULT_ENTRY = "default"
-#: The RL Zoo bridge's file (``python -m sb3_nfq.zoo train``), generated from :data:`RECOMMENDED`.
-ZOO_FILE = HYPERPARAMS_DIR / "nfq.yml"
-#: The config the RL Zoo bridge trains on each env: the one that did best in the benchmark there
-#: (benchmarks/results/README.md) on the success rate and the final score at the budget, then on training seconds.
-#: ``default`` serves every other env, ``atari`` every Atari game (the zoo's two special entries).
-RECOMMENDED: dict[str, str] = {
-    # Solved 5/5 and still at the threshold at the budget 5/5, as nfq-short-rounds, in far fewer steps and fewer
-    # training seconds relative to DQN's, run side by side; it ends training on its best-scoring fit (keep_best), where
-    # nfq-front-loaded, which trains the same way, ended at the threshold in 3/5. nfq-linear and nfq-capped-10k ended
-    # there in 4/5, nfq-tuned in 3/5 and nfq-front-loaded-eps-0.01 in 2/5.
-    "CartPole-v1": "nfq-front-loaded-keep-best",
-    # Solved 5/5 and still at the threshold at the budget 5/5, as nfq-capped, with higher final scores and in a third of
-    # its steps; nfq-tuned and nfq-linear ended at the threshold in 4/5.
-    "Acrobot-v1": "nfq-capped-10k",
-    # Solved the most seeds of the configs trained to the budget, each still at the threshold at the budget, as
-    # nfq-short-rounds-lr-lin-4e-3 did, in fewer training seconds relative to DQN's, run side by side. nfq-shared solved
-    # as many but was only run to the solve: its fitting time grows with the square of the steps.
-    "MountainCar-v0": "nfq-short-rounds-lr-lin-4e-3-huber-5",
-    # Solved every seed, and more seeds stayed at the threshold to the budget than with nfq-tuned's LunarLander entry
-    # (trained to the budget as nfq-capped, the same settings).
-    "LunarLander-v3": "nfq-short-rounds",
-    DEFAULT_ENTRY: "nfq-book",
-    "atari": "nfq-atari",
-}
+#: Keys of a zoo entry that :func:`nfq_kwargs` leaves out, each for its place: the budget (``learn``'s
+#: ``total_timesteps``), the policy (``NFQ``'s first argument), the number of envs (the env's) and the callbacks
+#: (``learn``'s ``callback``, built by :func:`nfq_callbacks`).
+ZOO_KEYS = ("n_timesteps", "policy", "n_envs", "callback")
+#: Keys of a zoo entry that build the env (wrappers, frame stacking), which ``NFQ`` is given: :func:`nfq_kwargs`
+#: refuses an entry with one (``normalize`` included, when it normalises).
+ENV_KEYS = ("env_wrapper", "vec_env_wrapper", "frame_stack", "env_kwargs", "monitor_kwargs")
 
 
-def config_names() -> list[str]:
-    """:return: the named configs shipped: one per YAML file in :data:`HYPERPARAMS_DIR` but the zoo's ``nfq.yml``"""
-    return sorted(path.stem for path in HYPERPARAMS_DIR.glob("*.yml") if path != ZOO_FILE)
-
-
-def read_entry(name: str, env_id: str) -> dict[str, Any]:
+def read_entry(env_id: str, path: Path = ZOO_FILE) -> dict[str, Any]:
     """
-    :param name: a config name (see :func:`config_names`)
-    :param env_id: a gymnasium env id: its entry, or the config's ``default`` entry if it has none
+    :param env_id: a gymnasium env id: its entry, or the file's ``default`` entry if it has none (the zoo gives an
+        Atari game the ``atari`` entry, which ``"atari"`` names here)
+    :param path: a zoo-format YAML file
     :return: the entry as written (plain data: ``policy_kwargs`` a string, ``n_timesteps`` included)
+    :raises KeyError: when the file has neither an entry for ``env_id`` nor a ``default`` one, naming those it has
     """
-    if name not in config_names():
-        raise KeyError(f"no config named {name!r}; shipped: {config_names()}")
-    table = yaml.safe_load((HYPERPARAMS_DIR / f"{name}.yml").read_text())
+    table = yaml.safe_load(Path(path).read_text())
     entry = table.get(env_id, table.get(DEFAULT_ENTRY))
     if entry is None:
-        raise KeyError(
-            f"config {name!r} has no entry for {env_id} and no {DEFAULT_ENTRY!r} entry; it has {sorted(table)}"
-        )
+        raise KeyError(f"{path} has no entry for {env_id} and no {DEFAULT_ENTRY!r} entry; it has {sorted(table)}")
     return dict(entry)
-
-
-def zoo_file_text() -> str:
-    """:return: the RL Zoo bridge's ``nfq.yml``: the entry of the config :data:`RECOMMENDED` for each env"""
-    lines = [
-        "# GENERATED by `python -m sb3_nfq.configs` from RECOMMENDED in sb3_nfq/configs.py: edit the config",
-        "# files, not this one. NFQ hyperparameters in the RL Baselines3 Zoo's format, read by",
-        "# `python -m sb3_nfq.zoo train --env <id>` (or pass your own file with --conf-file; `--hyperparams key:value`",
-        "# overrides single keys). Each entry is a named config's (sb3_nfq/hyperparams/<name>.yml, where it is",
-        "# described); `default` serves the envs without an entry, `atari` every Atari game. policy_kwargs strings",
-        "# are evaluated by the zoo with `th` and `nn` in scope.",
-        "# The zoo needs a `policy`: 'MlpPolicy' where the config names none.",
-    ]
-    for env_id, name in RECOMMENDED.items():
-        entry = read_entry(name, env_id)
-        entry = {"n_timesteps": entry.pop("n_timesteps"), "policy": entry.pop("policy", "MlpPolicy"), **entry}
-        lines += ["", f"# {name} (sb3_nfq/hyperparams/{name}.yml)"]
-        lines += yaml.safe_dump({env_id: entry}, sort_keys=False).splitlines()
-    return "\n".join(lines) + "\n"
 
 
 def _linear_schedule(initial: float) -> Callable[[float], float]:
@@ -152,25 +109,84 @@ def vec_normalize_kwargs(normalize: bool | str | dict[str, Any], gamma: float | 
     return kwargs
 
 
-def nfq_kwargs(name: str, env_id: str) -> dict[str, Any]:
+def nfq_kwargs(env_id: str, path: Path = ZOO_FILE) -> dict[str, Any]:
     """
-    :param name: a config name (see :func:`config_names`)
-    :param env_id: a gymnasium env id with an entry in that file
-    :return: the entry as ``NFQ`` keyword arguments (its budget, policy and number of envs left out)
-    :raises ValueError: when the entry normalises the env (``normalize``): that is the env's, not ``NFQ``'s, so
-        ``NFQ`` must be given the env wrapped in ``VecNormalize(env, **vec_normalize_kwargs(...))``
+    The entry's ``NFQ`` keyword arguments. The keys of :data:`ZOO_KEYS` are left out, each for its place: the budget
+    ``n_timesteps`` is ``learn``'s, ``policy`` is ``NFQ``'s first argument, ``n_envs`` is the env's, and ``callback``
+    is ``learn``'s, built by :func:`nfq_callbacks`.
+
+    :param env_id: a gymnasium env id (or ``"atari"``): its entry, or the file's ``default`` entry (see
+        :func:`read_entry`)
+    :param path: a zoo-format YAML file
+    :return: the entry as ``NFQ`` keyword arguments
+    :raises ValueError: when the entry builds the env: it normalises it (``normalize``), which is the env's, not
+        ``NFQ``'s, so ``NFQ`` must be given the env wrapped in ``VecNormalize(env, **vec_normalize_kwargs(...))``;
+        or it sets a key of :data:`ENV_KEYS` (the zoo's wrappers, frame stacking): train it with
+        ``python -m sb3_nfq.zoo train``, which builds the env as the zoo does
     """
-    entry = read_entry(name, env_id)
+    entry = read_entry(env_id, path)
     if vec_normalize_kwargs(entry.get("normalize", False)) is not None:
         raise ValueError(
-            f"config {name!r} normalises {env_id}'s env (normalize: {entry['normalize']!r}), which no NFQ argument "
-            "does: wrap the env in VecNormalize(env, **vec_normalize_kwargs(entry['normalize'], entry.get('gamma'))) "
-            "(entry = read_entry(name, env_id)), pass it to NFQ with the other keys, or train it with "
-            "`python -m sb3_nfq.zoo train`, which does both"
+            f"{path}'s entry for {env_id} normalises the env (normalize: {entry['normalize']!r}), which no NFQ "
+            "argument does: wrap the env in VecNormalize(env, **vec_normalize_kwargs(entry['normalize'], "
+            "entry.get('gamma'))) (entry = read_entry(env_id, path)), pass it to NFQ with the other keys, or train it "
+            "with `python -m sb3_nfq.zoo train`, which does both"
         )
-    return zoo_to_kwargs({key: value for key, value in entry.items() if key not in ZOO_KEYS})
+    env_keys = [key for key in ENV_KEYS if key in entry]
+    if env_keys:
+        raise ValueError(
+            f"{path}'s entry for {env_id} builds the env ({', '.join(env_keys)}), which no NFQ argument does: build "
+            "the env as the RL Zoo does and pass it to NFQ with the other keys of read_entry(env_id, path), or train "
+            "it with `python -m sb3_nfq.zoo train`, which does both"
+        )
+    kwargs = {key: value for key, value in entry.items() if key not in ZOO_KEYS and key != "normalize"}
+    return zoo_to_kwargs(kwargs)
 
 
-if __name__ == "__main__":
-    ZOO_FILE.write_text(zoo_file_text())
-    print(f"wrote {ZOO_FILE}")
+def _callback_class(name: Any, env_id: str, path: Path) -> type[BaseCallback]:
+    """
+    :param name: a class path, such as ``"sb3_nfq.KeepBestCallback"``
+    :param env_id: the entry's env id (for the error message)
+    :param path: the entry's file (for the error message)
+    :return: the ``BaseCallback`` subclass it names
+    """
+    where = f"callback {name!r} of {path}'s entry for {env_id}"
+    if not isinstance(name, str) or "." not in name:
+        raise ValueError(f"{where}: expected a class path such as 'package.module.ClassName'")
+    module_name, _, class_name = name.rpartition(".")
+    try:
+        found = getattr(importlib.import_module(module_name), class_name)
+    except (ImportError, AttributeError) as error:
+        raise ValueError(f"{where}: cannot import it ({error})") from error
+    if not (isinstance(found, type) and issubclass(found, BaseCallback)):
+        raise ValueError(f"{where}: {found!r} is not a stable_baselines3 BaseCallback class")
+    return found
+
+
+def nfq_callbacks(env_id: str, path: Path = ZOO_FILE) -> list[BaseCallback]:
+    """
+    The callbacks of the entry's ``callback`` key, for ``learn(callback=...)``, built as the RL Zoo builds them: a
+    class path (``callback: sb3_nfq.KeepBestCallback``), or a list of class paths and one-key dicts of a class path
+    to its keyword arguments (``- stable_baselines3.common.callbacks.StopTrainingOnMaxEpisodes: {max_episodes: 5}``).
+
+    :param env_id: a gymnasium env id (or ``"atari"``): its entry, or the file's ``default`` entry (see
+        :func:`read_entry`)
+    :param path: a zoo-format YAML file
+    :return: a new instance of each callback the entry names, in its order (none when it has no ``callback`` key)
+    :raises ValueError: when an item is not a class path of a ``BaseCallback`` subclass that imports, or a dict of
+        more than one key
+    """
+    value = read_entry(env_id, path).get("callback")
+    items = [] if value is None else value if isinstance(value, list) else [value]
+    callbacks = []
+    for item in items:
+        kwargs: dict[str, Any] = {}
+        if isinstance(item, dict):
+            if len(item) != 1:
+                raise ValueError(
+                    f"callback {item!r} of {path}'s entry for {env_id}: expected one class path, with its keyword "
+                    "arguments"
+                )
+            ((item, kwargs),) = item.items()
+        callbacks.append(_callback_class(item, env_id, path)(**(kwargs or {})))
+    return callbacks

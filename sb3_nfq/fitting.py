@@ -99,61 +99,25 @@ def take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferS
     )
 
 
-def next_state_values(q_net: th.nn.Module, picker: th.nn.Module | None, next_observations: Any) -> th.Tensor:
-    """
-    :param q_net: the Q-network
-    :param picker: ``None``: ``max_a' Q(s', a')``; else a second network that picks the action ``q_net`` values
-        (Double Q-learning's target)
-    :param next_observations: the next states ``s'``
-    :return: the value of each next state, shape ``(n,)``
-    """
-    next_q_values = q_net(next_observations)
-    if picker is None:
-        return next_q_values.max(dim=1).values
-    return next_q_values.gather(1, picker(next_observations).argmax(dim=1, keepdim=True)).squeeze(1)
-
-
-def td_targets(
-    q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float, picker: th.nn.Module | None = None
-) -> th.Tensor:
+def td_targets(q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float) -> th.Tensor:
     """
     :param q_net: the Q-network
     :param data: transitions
     :param gamma: the discount factor
-    :param picker: ``None``: the targets bootstrap on ``max_a' Q(s', a')``; else on ``Q(s', argmax_a' P(s', a'))``
-        (Double Q-learning: ``picker`` P picks the next action, ``q_net`` values it, so that an action is not valued
-        by the same errors that made it look best)
-    :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` (or its Double Q-learning form) with the networks in
-        eval mode (no Dropout, BatchNorm's running statistics used and left as they are), as a constant (no graph),
-        shape ``(n, 1)``; computed in chunks so that a large memory fits in memory.
+    :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the network in eval mode (no Dropout,
+        BatchNorm's running statistics used and left as they are), as a constant (no graph), shape ``(n, 1)``;
+        computed in chunks so that a large memory fits in memory.
     """
-    picker_mode = contextlib.nullcontext() if picker is None else eval_mode(picker)
-    with th.no_grad(), eval_mode(q_net), picker_mode:
+    with th.no_grad(), eval_mode(q_net):
         n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.next_observations)
         if n_transitions <= chunk_rows:
-            next_values = next_state_values(q_net, picker, data.next_observations)
+            next_q_values = q_net(data.next_observations).max(dim=1).values
         else:
             chunks = th.arange(n_transitions, device=data.rewards.device).split(chunk_rows)
-            next_values = th.cat(
-                [next_state_values(q_net, picker, take_rows(data.next_observations, rows)) for rows in chunks]
+            next_q_values = th.cat(
+                [q_net(take_rows(data.next_observations, rows)).max(dim=1).values for rows in chunks]
             )
-        return data.rewards + (1 - data.dones) * gamma * next_values.reshape(-1, 1)
-
-
-def step_back(module: th.nn.Module, start: dict[str, th.Tensor], step_size: float) -> None:
-    """
-    Move ``module``'s weights back towards ``start``, keeping ``step_size`` of the change since: ``start + step_size *
-    (now - start)`` for every floating-point entry of its state (integer buffers, such as BatchNorm's batch count,
-    stay as they are).
-
-    :param module: the network, after a fit
-    :param start: its ``state_dict()`` before the fit (a copy)
-    :param step_size: the fraction of the change to keep, in (0, 1]
-    """
-    with th.no_grad():
-        for name, value in module.state_dict().items():
-            if value.is_floating_point():
-                value.copy_(th.lerp(start[name], value, step_size))
+        return data.rewards + (1 - data.dones) * gamma * next_q_values.reshape(-1, 1)
 
 
 def states_and_successors(batch: ReplayBufferSamples, n_envs: int) -> tuple[th.Tensor, th.Tensor] | None:

@@ -1,6 +1,5 @@
 """Neural Fitted Q-Iteration (NFQ) as a Stable-Baselines3 off-policy algorithm."""
 
-import copy
 import io
 import math
 import pathlib
@@ -12,6 +11,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import (
     GymEnv,
     MaybeCallback,
@@ -23,14 +23,13 @@ from stable_baselines3.common.type_aliases import (
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
 from sb3_nfq import rounds
-from sb3_nfq.checkpoints import check_nfq_checkpoint
+from sb3_nfq.checkpoints import check_nfq_checkpoint, drop_retired
 from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
     check_loss_is_finite,
     loss_and_gradient,
     minibatch_indices,
     shared_successor_states,
-    step_back,
     take,
     td_targets,
 )
@@ -46,7 +45,7 @@ from sb3_nfq.parameters import (
     check_hyperparameters,
     is_positive_int,
     loss_function,
-    reject_dqn_parameters,
+    reject_unknown_parameters,
 )
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
 
@@ -89,21 +88,6 @@ class NFQ(OffPolicyAlgorithm):
     :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
         ``"fixed_per_iteration"`` (fitted Q-iteration): once per iteration, then ``fit_epochs`` epochs on them
     :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
-    :param double_q: ``False`` (textbook): the targets bootstrap on ``max_a' Q(s', a')``; ``True`` (needs
-        ``"fixed_per_iteration"``): Double Q-learning's ``Q(s', argmax_a' Q'(s', a'))``, where ``Q'``, the network as
-        it was when it computed the previous iteration's targets (kept across rounds, saved with the model), picks the
-        next action and the network being fitted values it, meant to curb the overestimation that taking the max of
-        noisy estimates builds up
-    :param round_step_size: Fraction of the change a round's fit made to the network's weights that the network keeps
-        (Lookahead's step size, with a round's fit as the inner steps): 1.0 (textbook) keeps all of it; below 1, each
-        round moves the network only part of the way from where the round started, damping how far one round can
-        swing the policy; in (0, 1]. Online rounds only (not :meth:`fit_offline`)
-    :param keep_best: ``False`` (textbook): :meth:`learn` ends with the network the last fit left; ``True``: it ends
-        with the best-scoring weights of the run. Each network a fit leaves is scored by the mean return of the
-        training episodes that end while it collects (a ``Monitor`` wrapper's returns, so epsilon-greedy ones: no
-        extra env steps), and the last one to score at least the best score so far is kept aside (saved with the
-        model); a network no episode ended under (a round shorter than an episode) is not scored. Training itself is
-        unchanged: each fit starts from the network the previous fit left
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
@@ -124,8 +108,9 @@ class NFQ(OffPolicyAlgorithm):
     :param device: Device (cpu, cuda, ...) on which the code should be run.
         Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
-    :param kwargs: nothing else is accepted: DQN's ``learning_starts``, ``target_update_interval``, ``tau``, ...
-        raise a ``TypeError`` saying what NFQ does instead
+    :param kwargs: nothing else is accepted: DQN's ``learning_starts``, ``target_update_interval``, ``tau``, ... and
+        the parameters NFQ no longer has (``double_q``, ``round_step_size``, ``keep_best``) raise a ``TypeError``
+        saying what NFQ does instead
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -152,9 +137,6 @@ class NFQ(OffPolicyAlgorithm):
         round_fraction_offset: int = 0,
         target_mode: TargetModeName = "recompute_every_step",
         fit_epochs: int = 1,
-        double_q: bool = False,
-        round_step_size: float = 1.0,
-        keep_best: bool = False,
         gamma: float = 1.0,
         loss: LossName = "mse",
         huber_delta: float = 1.0,
@@ -171,7 +153,7 @@ class NFQ(OffPolicyAlgorithm):
         _init_setup_model: bool = True,
         **kwargs: Any,
     ) -> None:
-        reject_dqn_parameters(kwargs)
+        reject_unknown_parameters(kwargs)
         check_hyperparameters(**{name: value for name, value in locals().items() if name in HYPERPARAMETERS})
         super().__init__(
             policy,
@@ -201,16 +183,6 @@ class NFQ(OffPolicyAlgorithm):
         self.round_fraction_offset = round_fraction_offset
         self.target_mode = target_mode
         self.fit_epochs = fit_epochs
-        self.double_q = double_q
-        self.round_step_size = round_step_size
-        # With double_q: the network as it was when it computed the previous fitted iteration's targets.
-        self.q_net_lagged: QNetwork | None = None
-        self.keep_best = keep_best
-        # With keep_best: the best-scoring weights, their score, and the returns of the episodes that ended since the
-        # network last changed.
-        self.q_net_best: QNetwork | None = None
-        self._best_score: float | None = None
-        self._returns_since_fit: list[float] = []
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
         self.exploration_fraction = exploration_fraction
@@ -245,10 +217,6 @@ class NFQ(OffPolicyAlgorithm):
             self.replay_buffer_class = type(self.replay_buffer)
         super()._setup_model()
         self.q_net = self.policy.q_net
-        if self.double_q:
-            self.q_net_lagged = copy.deepcopy(self.q_net).requires_grad_(False)
-        if self.keep_best:
-            self.q_net_best = copy.deepcopy(self.q_net).requires_grad_(False)
         # Rprop needs a round's fit in full batches, which only a fresh memory of step rounds bounds.
         fit_size = rounds.fresh_round_transitions(self.train_freq, self.n_envs, self.memory)
         check_full_batch_optimizer(
@@ -290,14 +258,11 @@ class NFQ(OffPolicyAlgorithm):
         )
         callback.on_training_start(locals(), globals())
         assert self.env is not None
-        if self.keep_best:
-            rounds.check_episode_returns(self.env)
 
         length = rounds.round_length(self.train_freq, self.n_envs)
         by_episode = length.unit == TrainFrequencyUnit.EPISODE
         while True:
             if (self._round_episodes if by_episode else self._round_steps) >= self._round_size(length):
-                self._judge_network()
                 # 2. Fit: gradient_steps fitted iterations on the whole memory.
                 self.train(gradient_steps=self.gradient_steps, batch_size=self.batch_size)
                 self._round_steps = self._round_episodes = self._round_target = 0
@@ -324,9 +289,6 @@ class NFQ(OffPolicyAlgorithm):
                 rounds.store_interrupted_step(self, callback)
                 break  # a complete round is fitted by the next learn(), before it collects
 
-        self._judge_network()
-        if self.q_net_best is not None and self._best_score is not None:
-            self.q_net.load_state_dict(self.q_net_best.state_dict())
         callback.on_training_end()
         return self
 
@@ -338,20 +300,6 @@ class NFQ(OffPolicyAlgorithm):
                 length, self.round_fraction, held, self.n_envs, self.round_fraction_offset
             )
         return self._round_target
-
-    def _judge_network(self) -> None:
-        """
-        With ``keep_best``: score the network by the returns of the episodes that ended since it last changed (if
-        any); a score at least the best so far keeps its weights aside as the best.
-        """
-        if self.q_net_best is None or not self._returns_since_fit:
-            return
-        score = float(np.mean(self._returns_since_fit))
-        self._returns_since_fit = []
-        if self._best_score is None or score >= self._best_score:
-            self._best_score = score
-            self.q_net_best.load_state_dict(self.q_net.state_dict())
-        self.logger.record("train/best_score", self._best_score)
 
     def _store_transition(
         self,
@@ -369,15 +317,11 @@ class NFQ(OffPolicyAlgorithm):
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
         self._round_steps += 1
         self._round_episodes += int(np.sum(dones))
-        if self.keep_best:
-            ended = [info for info, done in zip(infos, dones, strict=True) if done]
-            self._returns_since_fit += [float(info["episode"]["r"]) for info in ended]
         rounds.check_round_fits(self._round_steps, replay_buffer, self.buffer_size, self._n_rounds + 1)
 
     def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
         """
-        Run ``gradient_steps`` fitted iterations, each covering every transition in the memory (then, with
-        ``round_step_size`` below 1, keep only that fraction of the change they made).
+        Run ``gradient_steps`` fitted iterations, each covering every transition in the memory.
 
         :param gradient_steps: Number of fitted iterations (the book's K)
         :param batch_size: ``None``: one full-batch step per epoch; else shuffled mini-batches of this size
@@ -387,10 +331,7 @@ class NFQ(OffPolicyAlgorithm):
                 "NFQ's memory is empty: there is nothing to fit. Collect transitions with learn(), load them with "
                 "load_replay_buffer(), or fit a dataset with fit_offline()."
             )
-        start = None if self.round_step_size == 1 else copy.deepcopy(self.q_net.state_dict())
         self._fit(self._stored_transitions(), self.replay_buffer.n_envs, gradient_steps, batch_size)
-        if start is not None:
-            step_back(self.q_net, start, self.round_step_size)
 
     def _fit(self, batch: ReplayBufferSamples, n_envs: int, gradient_steps: int, batch_size: int | None) -> None:
         """
@@ -409,7 +350,7 @@ class NFQ(OffPolicyAlgorithm):
         losses = []
         for iteration in range(gradient_steps):
             # Classic fitted Q-iteration regresses on targets fixed for the iteration; the textbook recomputes them.
-            fixed = self._fixed_targets(batch) if self.target_mode == "fixed_per_iteration" else None
+            fixed = td_targets(self.q_net, batch, self.gamma) if self.target_mode == "fixed_per_iteration" else None
             for _ in range(self.fit_epochs):
                 for indices in minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
                     data = take(batch, indices)
@@ -431,18 +372,6 @@ class NFQ(OffPolicyAlgorithm):
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
-
-    def _fixed_targets(self, batch: ReplayBufferSamples) -> th.Tensor:
-        """
-        :param batch: the transitions of the fit
-        :return: a fitted iteration's targets; with ``double_q``, bootstrapping on the actions picked by the network
-            that computed the previous iteration's, which then takes the current network's weights
-        """
-        if self.q_net_lagged is None:
-            return td_targets(self.q_net, batch, self.gamma)
-        targets = td_targets(self.q_net, batch, self.gamma, picker=self.q_net_lagged)
-        self.q_net_lagged.load_state_dict(self.q_net.state_dict())
-        return targets
 
     @classmethod
     def for_dataset(
@@ -573,9 +502,28 @@ class NFQ(OffPolicyAlgorithm):
             **kwargs,
         )
 
+    def set_parameters(
+        self,
+        load_path_or_dict: str | pathlib.Path | io.BufferedIOBase | dict[str, Any],
+        exact_match: bool = True,
+        device: th.device | str = "auto",
+    ) -> None:
+        """
+        Load the policy's and optimizer's parameters from a zip saved by :meth:`save` or from :meth:`get_parameters`;
+        what an earlier version saved for the parameters NFQ no longer has is dropped with a ``UserWarning``.
+        See :meth:`stable_baselines3.common.base_class.BaseAlgorithm.set_parameters`.
+
+        :param load_path_or_dict: the zip file (or a file-like), or a dict of state dicts by name
+        :param exact_match: whether the parameters must cover every network and each of its parameters
+        :param device: Device on which the code should run.
+        """
+        if not isinstance(load_path_or_dict, dict):
+            _, load_path_or_dict, _ = load_from_zip_file(load_path_or_dict, device=device, load_data=False)
+        # In load(), SB3 has already put the zip's data on the model, so its retired attributes are dropped here too.
+        super().set_parameters(drop_retired(vars(self), load_path_or_dict), exact_match, device)
+
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "q_net", "q_net_lagged", "q_net_best"]
+        return [*super()._excluded_save_params(), "q_net"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        extra = [name for name, used in (("q_net_lagged", self.double_q), ("q_net_best", self.keep_best)) if used]
-        return ["policy", "policy.optimizer", *extra], []
+        return ["policy", "policy.optimizer"], []

@@ -3,7 +3,7 @@
 import functools
 import inspect
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import torch as th
 from gymnasium import spaces
@@ -39,12 +39,39 @@ DQN_ONLY_PARAMETERS = {
 }
 
 
-def reject_dqn_parameters(kwargs: dict[str, Any]) -> None:
+class RetiredParameter(NamedTuple):
+    """An NFQ parameter that earlier versions had."""
+
+    #: its value that did what NFQ does now
+    default: object
+    #: what else an earlier version saved with a model for it: attributes and networks
+    saved: tuple[str, ...]
+    #: what NFQ does instead
+    instead: str
+
+
+#: NFQ parameters that earlier versions had, and what NFQ does instead (a model loaded from an earlier version's zip
+#: too: see :func:`~sb3_nfq.checkpoints.drop_retired`).
+RETIRED_PARAMETERS = {
+    "double_q": RetiredParameter(False, ("q_net_lagged",), "NFQ's targets bootstrap on max_a' Q(s', a')"),
+    "round_step_size": RetiredParameter(1.0, (), "each round's fit is kept whole"),
+    "keep_best": RetiredParameter(
+        False,
+        ("_best_score", "_returns_since_fit", "q_net_best"),
+        "learn() ends with the last fit's weights; pass callback=sb3_nfq.KeepBestCallback() to learn() to end it "
+        "with the best-scoring ones",
+    ),
+}
+
+
+def reject_unknown_parameters(kwargs: dict[str, Any]) -> None:
     """
     :param kwargs: keyword arguments NFQ's constructor does not take
-    :raises TypeError: naming the first one, and, for a DQN parameter, what NFQ does instead
+    :raises TypeError: naming the first one, and, for a DQN parameter or one NFQ no longer has, what NFQ does instead
     """
     for name in kwargs:
+        if name in RETIRED_PARAMETERS:
+            raise TypeError(f"NFQ no longer has the parameter {name!r}: {RETIRED_PARAMETERS[name].instead}.")
         if name in DQN_ONLY_PARAMETERS:
             raise TypeError(
                 f"NFQ got DQN's parameter {name!r}, which it does not have: {DQN_ONLY_PARAMETERS[name]}. "
@@ -89,9 +116,6 @@ def check_hyperparameters(
     round_fraction_offset: int,
     target_mode: str,
     fit_epochs: int,
-    double_q: bool,
-    round_step_size: float,
-    keep_best: bool,
     gamma: float,
     loss: str,
     huber_delta: float,
@@ -154,17 +178,6 @@ def check_hyperparameters(
             f"fit_epochs={fit_epochs} needs target_mode='fixed_per_iteration': with 'recompute_every_step' "
             "every step already uses fresh targets, so raise gradient_steps instead"
         )
-    if not isinstance(double_q, bool):
-        raise ValueError(f"double_q must be True or False, got {double_q!r}")
-    if double_q and target_mode != "fixed_per_iteration":
-        raise ValueError(
-            f"double_q=True picks the next action with the network as it was one fitted iteration earlier, which needs "
-            f"target_mode='fixed_per_iteration' (got target_mode={target_mode!r})"
-        )
-    if not _is_positive_number(round_step_size) or round_step_size > 1:
-        raise ValueError(f"round_step_size must be a number in (0, 1], got {round_step_size!r}")
-    if not isinstance(keep_best, bool):
-        raise ValueError(f"keep_best must be True or False, got {keep_best!r}")
     if not 0.0 < exploration_fraction <= 1.0:
         raise ValueError(f"exploration_fraction must be in (0, 1], got {exploration_fraction!r}")
     for name, eps in (

@@ -8,10 +8,8 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
-from stable_baselines3.common.vec_env import VecEnv, VecMonitor, is_vecenv_wrapped
 
 
 def round_length(train_freq: TrainFreq | int | tuple[int, str], n_envs: int) -> TrainFreq:
@@ -96,18 +94,3 @@ def store_interrupted_step(model: OffPolicyAlgorithm, callback: BaseCallback) ->
     model._update_current_progress_remaining(model.num_timesteps, model._total_timesteps)
     model._on_step()
     model._episode_num += int(dones.sum())
-
-
-def check_episode_returns(env: VecEnv) -> None:
-    """
-    :param env: the env ``learn()`` collects from
-    :raises ValueError: if its episodes' returns do not reach the model (no ``Monitor`` or ``VecMonitor``), which
-        ``keep_best`` judges the network by
-    """
-    if is_vecenv_wrapped(env, VecMonitor) or all(env.env_is_wrapped(Monitor)):
-        return
-    raise ValueError(
-        "keep_best=True judges the network by the returns of its training episodes, which a Monitor wrapper reports, "
-        "but this env has none: wrap each env in stable_baselines3.common.monitor.Monitor (make_vec_env and NFQ(..., "
-        "env='<id>') do), or the VecEnv in VecMonitor."
-    )

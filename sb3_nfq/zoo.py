@@ -11,9 +11,11 @@ algorithm in the zoo's tables and then calls the zoo's own ``train()`` / ``enjoy
 
 Every argument is handed to the zoo untouched, so all its options work (``--eval-freq``, ``--save-freq``,
 ``-optimize``, ``--storage``, ``--hyperparams``, ...), with three NFQ defaults added when they are not given:
-``--algo nfq``; for ``train`` with NFQ, ``--conf-file`` pointing to the packaged ``sb3_nfq/hyperparams/nfq.yml``;
-for ``enjoy`` with NFQ, ``--folder logs`` (where ``train`` writes; the zoo's default folder holds downloaded
-agents, and none exist for NFQ).
+``--algo nfq``; for ``train`` with NFQ, ``--conf-file`` pointing to the packaged ``sb3_nfq/hyperparams/nfq.yml``
+(the hand-edited entries of :mod:`sb3_nfq.configs`, their ``callback`` key included); for ``enjoy`` with NFQ,
+``--folder logs`` (where ``train`` writes; the zoo's default folder holds downloaded agents, and none exist for NFQ).
+
+``train -optimize`` is the project's one way to tune NFQ's hyperparameters: Optuna, with the search space below.
 
 :func:`register` adds NFQ to ``rl_zoo3.utils.ALGOS`` and its Optuna search space (:func:`sample_nfq_params`,
 :func:`convert_nfq_params`) to the zoo's ``HYPERPARAMS_SAMPLER`` / ``HYPERPARAMS_CONVERTER``, for code that

@@ -60,6 +60,19 @@ def test_dqn_parameters_get_a_type_error_saying_what_nfq_does_instead(name: str,
         NFQ("MlpPolicy", "CartPole-v1", **{name: value})
 
 
+@pytest.mark.parametrize(
+    ("name", "value", "instead"),
+    [
+        ("double_q", True, r"max_a' Q\(s', a'\)"),
+        ("round_step_size", 0.5, "whole"),
+        ("keep_best", True, "KeepBestCallback"),
+    ],
+)
+def test_retired_parameters_get_a_type_error_saying_what_nfq_does_instead(name: str, value: Any, instead: str) -> None:
+    with pytest.raises(TypeError, match=f"NFQ no longer has the parameter '{name}': .*{instead}"):
+        NFQ("MlpPolicy", "CartPole-v1", **{name: value})
+
+
 def test_an_unknown_keyword_is_a_type_error_naming_it() -> None:
     with pytest.raises(TypeError, match="unexpected keyword argument 'gradient_step'"):
         NFQ("MlpPolicy", "CartPole-v1", gradient_step=3)

@@ -1,16 +1,24 @@
-"""The book's solve criterion (sb3_nfq.callbacks): its bookkeeping, and the callback on real SB3 algorithms."""
+"""
+sb3_nfq.callbacks on real SB3 algorithms: the book's solve criterion (and its bookkeeping), and KeepBestCallback.
+"""
 
+import copy
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
+from rl_zoo3.utils import get_callback_list
+from sb3_contrib import QRDQN
 from stable_baselines3 import DQN
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList, StopTrainingOnMaxEpisodes
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_nfq import NFQ, BookCriterion, StopTrainingOnBookCriterion
+from sb3_nfq import NFQ, BookCriterion, KeepBestCallback, StopTrainingOnBookCriterion
 
 SMALL_NFQ: dict[str, Any] = {"train_freq": 64, "gradient_steps": 2, "policy_kwargs": {"net_arch": [16]}}
 
@@ -103,3 +111,133 @@ def test_bad_window_is_refused(window: object) -> None:
 def test_a_vectorised_eval_env_is_refused() -> None:
     with pytest.raises(ValueError, match=r"eval_env must be a gymnasium\.Env"):
         StopTrainingOnBookCriterion(make_vec_env("CartPole-v1", n_envs=2))  # type: ignore[arg-type]
+
+
+# --- KeepBestCallback ------------------------------------------------------------------------------------------------
+
+
+def _state(model: BaseAlgorithm) -> dict[str, th.Tensor]:
+    return copy.deepcopy(model.policy.state_dict())
+
+
+def _same(a: dict[str, th.Tensor], b: dict[str, th.Tensor]) -> bool:
+    return a.keys() == b.keys() and all(th.equal(a[key], b[key]) for key in a)
+
+
+def _monitor(env: Any) -> Monitor:
+    assert isinstance(env, DummyVecEnv) and isinstance(env.envs[0], Monitor)
+    return env.envs[0]
+
+
+def test_keep_best_scores_each_rollouts_weights_by_the_monitors_returns_of_the_episodes_that_ended_in_it() -> None:
+    env = make_vec_env("CartPole-v1", n_envs=1, seed=0)
+    model = NFQ("MlpPolicy", env, memory="growing", train_freq=300, gradient_steps=1, seed=0)
+    keep_best = KeepBestCallback()
+    model.learn(600, callback=keep_best)  # two rounds: two rollouts, the first one's weights then its fit's
+
+    monitor = _monitor(env)
+    returns, ends = np.array(monitor.get_episode_rewards()), np.cumsum(monitor.get_episode_lengths())
+    first, second = returns[ends <= 300], returns[ends > 300]
+    assert len(first) > 5 and len(second) > 5 and first.mean() != second.mean()
+    assert keep_best.best_score == pytest.approx(max(first.mean(), second.mean()))
+    assert keep_best.best_weights is not None and _same(_state(model), keep_best.best_weights)
+
+
+def _feed(keep_best: KeepBestCallback, returns: list[float]) -> None:
+    """One rollout in which episodes with these returns end, as SB3's ``collect_rollouts`` calls the callback."""
+    for episode_return in returns:
+        keep_best.update_locals({"dones": np.array([True]), "infos": [{"episode": {"r": episode_return}}]})
+        keep_best.on_step()
+    keep_best.on_rollout_end()
+
+
+def test_keep_best_leaves_a_lower_score_aside_and_an_equal_score_becomes_the_best() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, seed=0)
+    model.learn(64)  # one round collected, not yet fitted
+    keep_best = KeepBestCallback()
+    keep_best.init_callback(model)
+    keep_best.on_training_start({}, {})
+    _feed(keep_best, [20.0, 30.0])
+    first = _state(model)
+    assert keep_best.best_score == 25.0 and keep_best.best_weights is not None
+    assert _same(keep_best.best_weights, first)
+    _feed(keep_best, [])  # no episode ended: not scored
+    model.train(gradient_steps=2)
+    fitted = _state(model)
+    assert not _same(fitted, first)
+    _feed(keep_best, [24.0])
+    assert keep_best.best_score == 25.0 and _same(keep_best.best_weights, first)
+    assert _same(_state(model), fitted)  # training goes on from the last fit
+    _feed(keep_best, [25.0])
+    assert keep_best.best_score == 25.0 and _same(keep_best.best_weights, fitted)
+
+
+class _RecordWeights(BaseCallback):
+    """The policy's weights at each rollout's end and at the end of training (before the callbacks after it)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.at_rollout_ends: list[dict[str, th.Tensor]] = []
+        self.at_training_end: dict[str, th.Tensor] = {}
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        self.at_rollout_ends.append(_state(self.model))
+
+    def _on_training_end(self) -> None:
+        self.at_training_end = _state(self.model)
+
+
+def test_keep_best_ends_learn_with_the_best_weights_when_later_fits_score_lower() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, seed=0)
+    keep_best, recorder = KeepBestCallback(), _RecordWeights()
+    keep_best.best_score, keep_best.best_weights = 1000.0, _state(model)  # no CartPole-v1 return reaches 1000
+    best = _state(model)
+    model.learn(640, callback=[recorder, keep_best])
+
+    assert model._n_rounds == 10 and len(recorder.at_rollout_ends) == 10
+    assert not _same(recorder.at_rollout_ends[-1], recorder.at_rollout_ends[-2])  # each fit went on from the last
+    assert not _same(recorder.at_training_end, best)
+    assert _same(_state(model), best) and keep_best.best_score == 1000.0
+
+
+def test_keep_best_judges_the_episodes_of_a_rollout_a_callback_stopped_early() -> None:
+    env = make_vec_env("CartPole-v1", n_envs=1, seed=0)
+    model = NFQ("MlpPolicy", env, train_freq=1000, seed=0)
+    keep_best = KeepBestCallback()
+    model.learn(1000, callback=CallbackList([StopTrainingOnMaxEpisodes(max_episodes=2), keep_best]))
+    returns = _monitor(env).get_episode_rewards()
+    assert len(returns) == 2 and keep_best.best_score == pytest.approx(np.mean(returns))
+
+
+def test_keep_best_refuses_an_env_without_a_monitor() -> None:
+    bare = DummyVecEnv([lambda: gym.make("CartPole-v1")])
+    with pytest.raises(ValueError, match="KeepBestCallback judges the policy's weights by the returns of the training"):
+        NFQ("MlpPolicy", bare).learn(64, callback=KeepBestCallback())
+
+
+@pytest.mark.parametrize("algorithm", [DQN, QRDQN])
+def test_keep_best_works_with_dqn_and_qrdqn(algorithm: type[DQN] | type[QRDQN]) -> None:
+    env = make_vec_env("CartPole-v1", n_envs=1, seed=1)
+    # One episode per rollout: each episode's return scores the weights that played it.
+    model = algorithm("MlpPolicy", env, learning_starts=0, train_freq=(1, "episode"), seed=1)
+    keep_best, recorder = KeepBestCallback(), _RecordWeights()
+    model.learn(300, callback=[recorder, keep_best])
+
+    returns = _monitor(env).get_episode_rewards()
+    assert len(returns) > 5 and len(set(returns)) > 1
+    assert keep_best.best_score == max(returns) and keep_best.best_weights is not None
+    best = len(returns) - 1 - returns[::-1].index(max(returns))  # an equal score becomes the best: the last
+    assert _same(keep_best.best_weights, recorder.at_rollout_ends[best])  # target network included
+    assert not _same(recorder.at_training_end, keep_best.best_weights)  # trained after the best
+    assert _same(_state(model), keep_best.best_weights)
+
+
+def test_the_zoo_can_name_keep_best_as_a_hyperparameters_callback() -> None:
+    (keep_best,) = get_callback_list({"callback": "sb3_nfq.KeepBestCallback"})
+    assert isinstance(keep_best, KeepBestCallback)
+    env = make_vec_env("CartPole-v1", n_envs=1, seed=0)
+    NFQ("MlpPolicy", env, train_freq=200, seed=0).learn(200, callback=keep_best)
+    assert keep_best.best_score == pytest.approx(np.mean(_monitor(env).get_episode_rewards()))

@@ -1,84 +1,158 @@
-"""The configs shipped as data (sb3_nfq/hyperparams/*.yml) and their reading into NFQ's keyword arguments."""
+"""The hyperparameter file shipped as data (sb3_nfq/hyperparams/nfq.yml) and its reading into NFQ's arguments."""
 
 from pathlib import Path
 
+import gymnasium as gym
 import pytest
 import torch as th
 import yaml
+from stable_baselines3.common.callbacks import ProgressBarCallback, StopTrainingOnMaxEpisodes
+from stable_baselines3.common.env_util import make_atari_env
+from stable_baselines3.common.type_aliases import TrainFreq
+from stable_baselines3.common.vec_env import VecFrameStack
 
-import sb3_nfq.configs
 from sb3_nfq import NFQ
 from sb3_nfq.configs import (
-    RECOMMENDED,
+    ENV_KEYS,
     ZOO_FILE,
-    config_names,
+    nfq_callbacks,
     nfq_kwargs,
     read_entry,
     vec_normalize_kwargs,
-    zoo_file_text,
     zoo_to_kwargs,
 )
 
+BENCHMARK_ENVS = ["CartPole-v1", "Acrobot-v1", "MountainCar-v0", "LunarLander-v3"]
 
-def test_shipped_configs_are_the_named_files_without_the_zoo_file() -> None:
-    assert config_names() == [
-        "nfq-atari",
-        "nfq-book",
-        "nfq-capped",
-        "nfq-capped-10k",
-        "nfq-capped-mse",
-        "nfq-front-loaded",
-        "nfq-front-loaded-eps-0.01",
-        "nfq-front-loaded-keep-best",
-        "nfq-linear",
-        "nfq-shared",
-        "nfq-short-rounds",
-        "nfq-short-rounds-64",
-        "nfq-short-rounds-lr-lin-4e-3",
-        "nfq-short-rounds-lr-lin-4e-3-huber",
-        "nfq-short-rounds-lr-lin-4e-3-huber-10",
-        "nfq-short-rounds-lr-lin-4e-3-huber-5",
-        "nfq-tuned",
-    ]
+
+def _write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "my_nfq.yml"
+    path.write_text(text)
+    return path
+
+
+def test_the_file_has_an_entry_per_benchmark_env_the_default_and_atari() -> None:
+    assert list(yaml.safe_load(ZOO_FILE.read_text())) == [*BENCHMARK_ENVS, "default", "atari"]
+    assert ZOO_FILE.parent.name == "hyperparams" and ZOO_FILE.parent.parent.name == "sb3_nfq"
+
+
+def test_the_entries_are_the_configs_measured_for_them() -> None:
+    cartpole, mountain_car, default = (read_entry(env_id) for env_id in ("CartPole-v1", "MountainCar-v0", "default"))
+    # CartPole: nfq-front-loaded-keep-best, its keep_best now the callback
+    assert (cartpole["round_fraction"], cartpole["round_fraction_offset"], cartpole["train_freq"]) == (0.4, 4000, 128)
+    assert cartpole["callback"] == "sb3_nfq.KeepBestCallback" and "keep_best" not in cartpole
+    # default: nfq-short-rounds-lr-lin-4e-3-huber-5, MountainCar's config, with a budget of its own
+    assert (default["loss"], default["huber_delta"], default["learning_rate"]) == ("huber", 5.0, "lin_0.004")
+    assert {**mountain_car, "n_timesteps": 0} == {**default, "n_timesteps": 0}
+    assert (read_entry("Acrobot-v1")["buffer_size"], read_entry("LunarLander-v3")["learning_rate"]) == (10_000, 0.0005)
+
+
+@pytest.mark.parametrize("entry", [*BENCHMARK_ENVS, "default"])
+def test_every_entry_builds_nfq_on_its_env_and_trains_one_round(entry: str) -> None:
+    env_id = "CartPole-v1" if entry == "default" else entry
+    if env_id == "LunarLander-v3":
+        pytest.importorskip("Box2D")
+    assert read_entry(entry)["n_timesteps"] > 0
+    model = NFQ(read_entry(entry)["policy"], gym.make(env_id), seed=0, **nfq_kwargs(entry))
+    assert isinstance(model.train_freq, TrainFreq)
+    model.learn(total_timesteps=model.train_freq.frequency, callback=nfq_callbacks(entry))
+    assert model._n_updates > 0
+
+
+def test_atari_entry_builds_nfq_on_the_zoos_atari_stack_and_trains() -> None:
+    ale_py = pytest.importorskip("ale_py")
+    gym.register_envs(ale_py)
+    with pytest.raises(ValueError, match="entry for atari builds the env \\(env_wrapper, frame_stack\\)"):
+        nfq_kwargs("atari")
+    hyperparams = read_entry("atari")
+    # What the zoo builds from the entry: its wrapper, then frame stacking
+    assert hyperparams.pop("env_wrapper") == ["stable_baselines3.common.atari_wrappers.AtariWrapper"]
+    env = VecFrameStack(make_atari_env("PongNoFrameskip-v4", n_envs=1, seed=0), n_stack=hyperparams.pop("frame_stack"))
+    assert hyperparams.pop("n_timesteps") > 0 and nfq_callbacks("atari") == []
+    hyperparams.update(train_freq=64, gradient_steps=1)  # one small round: the entry's 4096 frames take minutes
+    model = NFQ(env=env, seed=0, **zoo_to_kwargs(hyperparams))
+    model.learn(total_timesteps=64)
+    assert model._n_updates == 1  # 64 < batch_size: one full-batch step
+    assert model.q_net(model.policy.obs_to_tensor(env.reset())[0]).shape == (1, 6)
 
 
 def test_an_env_without_an_entry_gets_the_default_entry() -> None:
-    assert read_entry("nfq-book", "Pendulum-v1") == read_entry("nfq-book", "CartPole-v1") == {"n_timesteps": 300_000}
-    assert read_entry("nfq-book", "LunarLander-v3") == {"n_timesteps": 500_000}
+    assert read_entry("Pendulum-v1") == read_entry("default") != read_entry("CartPole-v1")
+    assert nfq_kwargs("Pendulum-v1").keys() == nfq_kwargs("default").keys()
 
 
-def test_the_zoo_file_is_generated_from_the_recommended_configs() -> None:
-    assert ZOO_FILE.read_text() == zoo_file_text(), "regenerate it: python -m sb3_nfq.configs"
-    table = yaml.safe_load(ZOO_FILE.read_text())
-    assert list(table) == list(RECOMMENDED)
-    for env_id, name in RECOMMENDED.items():
-        entry = dict(table[env_id])
-        assert entry.pop("policy") == read_entry(name, env_id).get("policy", "MlpPolicy")
-        assert entry == {key: value for key, value in read_entry(name, env_id).items() if key != "policy"}
-    # The envs RECOMMENDED gives nfq-short-rounds or its successor with a decaying step and the Huber loss (20k memory,
-    # refitted every 128 steps), and CartPole nfq-front-loaded ending on its best-scoring fit: where they stayed solved
-    # to the budget in the most seeds
-    short_rounds_envs = ("MountainCar-v0", "LunarLander-v3")
-    for env_id in short_rounds_envs:
-        assert (table[env_id]["buffer_size"], table[env_id]["train_freq"]) == (20_000, 128)
-    assert [table[env_id]["learning_rate"] for env_id in short_rounds_envs] == ["lin_0.004", 0.0005]
-    assert [table[env_id]["loss"] for env_id in short_rounds_envs] == ["huber", "mse"]
-    cartpole = table["CartPole-v1"]
-    assert (cartpole["keep_best"], cartpole["round_fraction_offset"], cartpole["train_freq"]) == (True, 4000, 128)
+def test_a_file_read_by_path(tmp_path: Path) -> None:
+    path = _write(tmp_path, "CartPole-v1:\n  n_timesteps: 1000\n  gamma: 0.9\ndefault:\n  n_timesteps: 5\n")
+    assert read_entry("CartPole-v1", path) == {"n_timesteps": 1000, "gamma": 0.9}
+    assert read_entry("Acrobot-v1", path) == {"n_timesteps": 5}
+    assert nfq_kwargs("CartPole-v1", path) == {"gamma": 0.9}
 
 
-def test_an_entry_becomes_nfq_keyword_arguments() -> None:
-    entry = read_entry("nfq-shared", "Acrobot-v1")
-    assert entry["n_timesteps"] == 100_000 and isinstance(entry["policy_kwargs"], str)
-    kwargs = nfq_kwargs("nfq-shared", "Acrobot-v1")
-    assert "n_timesteps" not in kwargs and kwargs["policy_kwargs"]["optimizer_class"] is th.optim.Adam
-    model = NFQ("MlpPolicy", "Acrobot-v1", **kwargs)
-    assert model.memory == "growing" and model.batch_size == 256
-    # one config for every env: the entries differ in their budget only
-    cartpole = read_entry("nfq-shared", "CartPole-v1")
-    assert {key: value for key, value in entry.items() if key != "n_timesteps"} == {
-        key: value for key, value in cartpole.items() if key != "n_timesteps"
-    }
+def test_an_env_without_an_entry_or_a_default_is_refused_naming_the_entries(tmp_path: Path) -> None:
+    path = _write(tmp_path, "CartPole-v1:\n  n_timesteps: 1000\nAcrobot-v1:\n  n_timesteps: 1000\n")
+    with pytest.raises(KeyError, match=r"no entry for Pong-v5 and no 'default' entry; it has \['Acrobot-v1', 'Cart"):
+        read_entry("Pong-v5", path)
+
+
+def test_nfq_kwargs_leave_out_the_budget_policy_and_callbacks_and_read_the_rest_as_the_zoo() -> None:
+    entry = read_entry("CartPole-v1")
+    kwargs = nfq_kwargs("CartPole-v1")
+    assert set(entry) - set(kwargs) == {"n_timesteps", "policy", "callback"}
+    assert kwargs["policy_kwargs"] == {"net_arch": [256, 256], "optimizer_class": th.optim.Adam}
+    assert kwargs["learning_rate"](0.5) == pytest.approx(0.00115)
+
+
+def test_nfq_kwargs_refuses_an_entry_that_normalizes_the_env(tmp_path: Path) -> None:
+    path = _write(tmp_path, "CartPole-v1:\n  n_timesteps: 1000\n  normalize: true\n")
+    with pytest.raises(ValueError, match="entry for CartPole-v1 normalises the env \\(normalize: True\\)"):
+        nfq_kwargs("CartPole-v1", path)
+    path = _write(tmp_path, "CartPole-v1:\n  n_timesteps: 1000\n  normalize: false\n  gamma: 0.9\n")
+    assert nfq_kwargs("CartPole-v1", path) == {"gamma": 0.9}
+
+
+@pytest.mark.parametrize("key", ENV_KEYS)
+def test_nfq_kwargs_refuses_an_entry_that_builds_the_env(tmp_path: Path, key: str) -> None:
+    path = _write(tmp_path, f"CartPole-v1:\n  n_timesteps: 1000\n  {key}: 4\n")
+    with pytest.raises(ValueError, match=f"entry for CartPole-v1 builds the env \\({key}\\)"):
+        nfq_kwargs("CartPole-v1", path)
+
+
+def test_nfq_callbacks_builds_a_class_path(tmp_path: Path) -> None:
+    path = _write(tmp_path, "CartPole-v1:\n  callback: stable_baselines3.common.callbacks.ProgressBarCallback\n")
+    first, second = nfq_callbacks("CartPole-v1", path), nfq_callbacks("CartPole-v1", path)
+    assert [type(callback) for callback in first] == [ProgressBarCallback] and first[0] is not second[0]
+    assert nfq_callbacks("CartPole-v1", _write(tmp_path, "CartPole-v1:\n  n_timesteps: 1\n")) == []
+
+
+def test_nfq_callbacks_builds_a_list_of_class_paths_and_paths_with_arguments_that_learn_runs(tmp_path: Path) -> None:
+    path = _write(
+        tmp_path,
+        "CartPole-v1:\n  callback:\n"
+        "    - stable_baselines3.common.callbacks.ProgressBarCallback\n"
+        "    - stable_baselines3.common.callbacks.StopTrainingOnMaxEpisodes:\n        max_episodes: 1\n",
+    )
+    progress_bar, stop = nfq_callbacks("CartPole-v1", path)
+    assert isinstance(progress_bar, ProgressBarCallback)
+    assert isinstance(stop, StopTrainingOnMaxEpisodes) and stop.max_episodes == 1
+    model = NFQ("MlpPolicy", "CartPole-v1", seed=0)
+    model.learn(2048, callback=[stop])
+    assert 0 < model.num_timesteps < 500  # stopped at the end of the first episode (CartPole's limit is 500 steps)
+
+
+@pytest.mark.parametrize(
+    ("callback", "message"),
+    [
+        ("sb3_nfq.NoSuchCallback", "callback 'sb3_nfq.NoSuchCallback' of .* cannot import it"),
+        ("no_such_module.Callback", "callback 'no_such_module.Callback' of .* cannot import it"),
+        ("ProgressBarCallback", "expected a class path such as 'package.module.ClassName'"),
+        ("sb3_nfq.NFQ", "is not a stable_baselines3 BaseCallback class"),
+        ("[{a.B: {}, c.D: {}}]", "expected one class path, with its keyword arguments"),
+    ],
+)
+def test_nfq_callbacks_refuses_what_is_not_a_callback_class_path(tmp_path: Path, callback: str, message: str) -> None:
+    path = _write(tmp_path, f"CartPole-v1:\n  callback: {callback}\n")
+    with pytest.raises(ValueError, match=message):
+        nfq_callbacks("CartPole-v1", path)
 
 
 def test_zoo_strings_become_objects() -> None:
@@ -101,18 +175,3 @@ def test_normalize_is_read_as_the_rl_zoo_reads_it() -> None:
     assert vec_normalize_kwargs({"norm_reward": False}) == {"norm_reward": False}
     with pytest.raises(ValueError, match="normalize must be true, false or a dict"):
         vec_normalize_kwargs("yes")
-
-
-def test_nfq_kwargs_refuses_an_entry_that_normalizes_the_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    (tmp_path / "nfq-norm.yml").write_text("CartPole-v1:\n  n_timesteps: 1000\n  normalize: true\n")
-    monkeypatch.setattr(sb3_nfq.configs, "HYPERPARAMS_DIR", tmp_path)
-    monkeypatch.setattr(sb3_nfq.configs, "ZOO_FILE", tmp_path / "nfq.yml")
-    with pytest.raises(ValueError, match="config 'nfq-norm' normalises CartPole-v1's env"):
-        nfq_kwargs("nfq-norm", "CartPole-v1")
-
-
-def test_unknown_names_and_envs_are_refused_clearly() -> None:
-    with pytest.raises(KeyError, match="no config named 'nfq-best'"):
-        read_entry("nfq-best", "CartPole-v1")
-    with pytest.raises(KeyError, match="has no entry for Pong-v5"):
-        read_entry("nfq-shared", "Pong-v5")

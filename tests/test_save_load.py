@@ -1,16 +1,20 @@
 """Checkpoints: save -> load gives the same agent, optimizer state included, and training resumes."""
 
 import io
+import warnings
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import torch as th
 from stable_baselines3 import DQN
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.save_util import load_from_zip_file, save_to_zip_file
 
 from sb3_nfq import NFQ
+from sb3_nfq.parameters import RETIRED_PARAMETERS
 from tests.conftest import record_fitting
 
 
@@ -116,3 +120,70 @@ def test_loading_something_that_is_not_an_nfq_checkpoint_fails_clearly(tmp_path:
 
     with pytest.raises(FileNotFoundError):
         NFQ.load(tmp_path / "missing.zip")
+
+
+def _earlier_versions_zip(model: NFQ, path: Path, retired: dict[str, Any]) -> Path:
+    """Save ``model`` as an earlier version did: with ``retired`` data keys and, where used, their networks."""
+    model.save(path)
+    data, params, variables = load_from_zip_file(path)
+    assert data is not None and params is not None
+    networks: dict[str, Any] = dict(params)
+    for name, used in (("q_net_lagged", "double_q"), ("q_net_best", "keep_best")):
+        if retired[used]:
+            networks[name] = model.q_net.state_dict()
+    save_to_zip_file(path, data={**data, **retired}, params=networks, pytorch_variables=variables)
+    return path
+
+
+def test_a_zip_with_retired_parameters_loads_without_them_and_warns_naming_them(
+    trained: tuple[NFQ, Path], tmp_path: Path
+) -> None:
+    model, _ = trained
+    retired: dict[str, Any] = {
+        "double_q": True,
+        "round_step_size": 0.5,
+        "keep_best": True,
+        "_best_score": 187.0,
+        "_returns_since_fit": [9.0],
+    }
+    old = _earlier_versions_zip(model, tmp_path / "old.zip", retired)
+    with pytest.warns(UserWarning, match="saved by an earlier sb3-nfq") as caught:
+        loaded = NFQ.load(old, env=make_vec_env("CartPole-v1", n_envs=1, seed=3))
+    (message,) = [str(warning.message) for warning in caught if "earlier sb3-nfq" in str(warning.message)]
+    for dropped in (
+        "double_q=True, q_net_lagged",
+        "round_step_size=0.5",
+        "keep_best=True, q_net_best",
+        "KeepBestCallback",
+    ):
+        assert dropped in message
+    for name, parameter in RETIRED_PARAMETERS.items():
+        assert all(not hasattr(loaded, attribute) for attribute in (name, *parameter.saved))
+    obs = np.random.default_rng(2).normal(size=(50, 4)).astype(np.float32)
+    np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+    loaded.learn(64, reset_num_timesteps=False)
+    assert loaded._n_rounds == 3
+
+    fresh = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=3, seed=1)
+    with pytest.warns(UserWarning, match=r"dropped on loading: q_net_lagged \(.*\); q_net_best \("):
+        fresh.set_parameters(str(old))
+    np.testing.assert_array_equal(fresh.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+
+
+def test_a_zip_with_retired_parameters_at_their_textbook_values_loads_without_them_silently(
+    trained: tuple[NFQ, Path], tmp_path: Path
+) -> None:
+    model, _ = trained
+    retired: dict[str, Any] = {
+        "double_q": False,
+        "round_step_size": 1.0,
+        "keep_best": False,
+        "_best_score": None,
+        "_returns_since_fit": [],
+    }
+    old = _earlier_versions_zip(model, tmp_path / "old.zip", retired)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loaded = NFQ.load(old)
+    for name, parameter in RETIRED_PARAMETERS.items():
+        assert all(not hasattr(loaded, attribute) for attribute in (name, *parameter.saved))

@@ -4,7 +4,6 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -12,9 +11,8 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
-from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_nfq import NFQ, TransitionDataset
+from sb3_nfq import NFQ
 from sb3_nfq.rounds import fresh_round_transitions, round_length, round_size
 from tests.conftest import TransitionRecorder, record_fitting
 
@@ -121,159 +119,12 @@ def test_fixed_targets_are_computed_once_per_iteration_and_regressed_on_for_fit_
 
 def test_textbook_targets_are_recomputed_before_every_step() -> None:
     model = _sgd_model("recompute_every_step", fit_epochs=1)
-    assert model.double_q is False and NFQ("MlpPolicy", "CartPole-v1").double_q is False
     recomputed = _by_hand(model, 3, recompute=True)
     fitting = record_fitting(model)
     model.train(gradient_steps=3)
     assert fitting.no_grad_batch_sizes == [4, 4, 4]
     for got, expected in zip(model.q_net.parameters(), recomputed, strict=True):
         th.testing.assert_close(got.detach(), expected)
-
-
-def test_double_q_values_the_action_the_network_of_the_previous_iteration_picks() -> None:
-    model = _sgd_model("fixed_per_iteration", fit_epochs=1)
-    double = _sgd_model("fixed_per_iteration", fit_epochs=1, double_q=True)  # the same network and memory
-    data = model._stored_transitions()
-    q_net = model.policy.make_q_net()
-    q_net.load_state_dict(model.q_net.state_dict())
-    optimizer = th.optim.SGD(q_net.parameters(), lr=0.5)
-    lagged = {key: value.clone() for key, value in q_net.state_dict().items()}
-    picker = model.policy.make_q_net()
-    for _ in range(5):  # enough iterations for the two networks to pick differently somewhere
-        picker.load_state_dict(lagged)
-        with th.no_grad():
-            picked = picker(data.next_observations).argmax(dim=1, keepdim=True)
-            target = data.rewards + model.gamma * th.gather(q_net(data.next_observations), 1, picked)
-        lagged = {key: value.clone() for key, value in q_net.state_dict().items()}
-        loss = th.nn.functional.mse_loss(th.gather(q_net(data.observations), 1, data.actions.long()), target)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-
-    double.train(gradient_steps=5)
-    model.train(gradient_steps=5)
-    for got, expected in zip(double.q_net.parameters(), q_net.parameters(), strict=True):
-        th.testing.assert_close(got.detach(), expected.detach())
-    assert double.q_net_lagged is not None
-    for key, value in double.q_net_lagged.state_dict().items():
-        th.testing.assert_close(value, lagged[key])  # the network after four steps picks next
-    assert any(not th.allclose(a, b) for a, b in zip(model.q_net.parameters(), q_net.parameters(), strict=True))
-
-
-def _weights(net: th.nn.Module) -> list[th.Tensor]:
-    return [p.detach().clone() for p in net.parameters()]
-
-
-def _same(a: list[th.Tensor], b: list[th.Tensor]) -> bool:
-    return all(th.equal(x, y) for x, y in zip(a, b, strict=True))
-
-
-def test_double_q_keeps_its_lagged_network_across_save_and_load(tmp_path: Path) -> None:
-    kwargs: dict[str, Any] = {"memory": "growing", "target_mode": "fixed_per_iteration", "train_freq": 64}
-    model = NFQ("MlpPolicy", "CartPole-v1", double_q=True, gradient_steps=2, seed=0, **kwargs)
-    model.learn(128)
-    assert set(model.get_parameters()) == {"policy", "policy.optimizer", "q_net_lagged"}
-    model.save(tmp_path / "model.zip")
-    loaded = NFQ.load(tmp_path / "model.zip")
-    assert loaded.double_q is True and loaded.q_net_lagged is not None and model.q_net_lagged is not None
-    lagged = _weights(loaded.q_net_lagged)
-    assert _same(lagged, _weights(model.q_net_lagged)) and not _same(lagged, _weights(loaded.q_net))
-    plain = NFQ("MlpPolicy", "CartPole-v1", seed=0, **kwargs)
-    assert plain.double_q is False and plain.q_net_lagged is None
-    assert set(plain.get_parameters()) == {"policy", "policy.optimizer"}
-
-
-def test_round_step_size_keeps_that_fraction_of_each_rounds_change() -> None:
-    whole = _sgd_model("recompute_every_step", fit_epochs=1)
-    damped = _sgd_model("recompute_every_step", fit_epochs=1, round_step_size=0.25)  # the same network and memory
-    start = _weights(whole.q_net)
-    whole.train(gradient_steps=3)
-    damped.train(gradient_steps=3)
-    for got, before, fitted in zip(damped.q_net.parameters(), start, whole.q_net.parameters(), strict=True):
-        th.testing.assert_close(got.detach(), before + 0.25 * (fitted.detach() - before))
-    assert any(not th.allclose(a, b) for a, b in zip(start, whole.q_net.parameters(), strict=True))
-    assert whole.round_step_size == 1.0 and NFQ("MlpPolicy", "CartPole-v1").round_step_size == 1.0
-
-
-def test_round_step_size_leaves_offline_fits_whole_and_survives_save_and_load(tmp_path: Path) -> None:
-    source = _sgd_model("recompute_every_step", fit_epochs=1)
-    dataset = TransitionDataset.from_replay_buffer(source.replay_buffer)
-    whole = NFQ.for_dataset("MlpPolicy", dataset, gradient_steps=3, seed=0)
-    damped = NFQ.for_dataset("MlpPolicy", dataset, gradient_steps=3, seed=0, round_step_size=0.5)
-    whole.fit_offline(dataset)
-    damped.fit_offline(dataset)
-    assert _same(_weights(whole.q_net), _weights(damped.q_net))
-    damped.save(tmp_path / "model.zip")
-    assert NFQ.load(tmp_path / "model.zip").round_step_size == 0.5
-
-
-def test_keep_best_scores_the_network_by_the_monitors_returns_of_its_episodes() -> None:
-    # No round completes in 600 steps: one network collects them all, and learn() judges it at its end.
-    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=1000, keep_best=True, seed=0)
-    model.learn(600)
-    assert model.ep_info_buffer is not None
-    returns = [episode["r"] for episode in model.ep_info_buffer]
-    assert model._n_rounds == 0 and len(returns) > 5
-    assert model._best_score == pytest.approx(np.mean(returns)) and model._returns_since_fit == []
-    assert model.q_net_best is not None and _same(_weights(model.q_net_best), _weights(model.q_net))
-
-
-def test_keep_best_keeps_aside_a_network_that_scores_at_least_the_best_and_training_goes_on_from_the_last() -> None:
-    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, keep_best=True, seed=0)
-    model.learn(64)  # collects one round, unfitted
-    assert model.q_net_best is not None
-    model._returns_since_fit = [20.0, 30.0]
-    model._judge_network()
-    best = _weights(model.q_net)
-    assert model._best_score == 25.0 and _same(_weights(model.q_net_best), best)
-    model.train(gradient_steps=2)
-    fitted = _weights(model.q_net)
-    assert not _same(fitted, best)
-    model._returns_since_fit = [24.0]
-    model._judge_network()
-    assert _same(_weights(model.q_net), fitted) and _same(_weights(model.q_net_best), best)
-    assert model._best_score == 25.0 and model._returns_since_fit == []
-    model._returns_since_fit = [25.0]
-    model._judge_network()
-    assert _same(_weights(model.q_net_best), fitted) and model._best_score == 25.0
-
-
-def test_keep_best_ends_learn_with_the_best_weights_when_the_fits_score_lower() -> None:
-    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, keep_best=True, seed=0)
-    model.learn(64)
-    model._best_score = 1000.0  # no CartPole-v1 episode returns more than 500: no fit scores as high
-    assert model.q_net_best is not None
-    best = _weights(model.q_net_best)
-    moved: list[list[th.Tensor]] = []
-
-    def record(_locals: dict, _globals: dict) -> bool:
-        moved.append(_weights(model.q_net))
-        return True
-
-    model.learn(1000, reset_num_timesteps=False, callback=record)
-    assert model._n_rounds >= 10 and not _same(moved[-1], best)  # trained on from each fit, not from the best
-    assert _same(_weights(model.q_net), best) and model._best_score == 1000.0
-
-
-def test_keep_best_needs_a_monitor_and_is_off_by_default() -> None:
-    bare = DummyVecEnv([lambda: gym.make("CartPole-v1")])
-    with pytest.raises(ValueError, match="keep_best=True judges the network by the returns of its training episodes"):
-        NFQ("MlpPolicy", bare, keep_best=True).learn(64)
-    plain = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64)
-    plain.learn(200)
-    assert plain.keep_best is False and plain.q_net_best is None and plain._returns_since_fit == []
-    assert set(plain.get_parameters()) == {"policy", "policy.optimizer"}
-
-
-def test_keep_best_keeps_the_best_weights_and_score_across_save_and_load(tmp_path: Path) -> None:
-    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, keep_best=True, seed=0)
-    model.learn(640)
-    assert model.q_net_best is not None and model._best_score is not None
-    assert set(model.get_parameters()) == {"policy", "policy.optimizer", "q_net_best"}
-    model.save(tmp_path / "model.zip")
-    loaded = NFQ.load(tmp_path / "model.zip")
-    assert loaded.keep_best is True and loaded._best_score == model._best_score and loaded.q_net_best is not None
-    assert _same(_weights(loaded.q_net_best), _weights(model.q_net_best))
 
 
 def test_fixed_targets_with_minibatches_use_each_transitions_own_target() -> None:
@@ -347,13 +198,6 @@ def test_rprop_with_a_batch_size_that_covers_the_whole_fresh_round_takes_full_ba
         ({"target_mode": "fixed"}, r"target_mode must be one of \['recompute_every_step', 'fixed_per_iteration'\]"),
         ({"fit_epochs": 0}, "fit_epochs must be a positive integer"),
         ({"fit_epochs": 3}, "fit_epochs=3 needs target_mode='fixed_per_iteration'"),
-        ({"double_q": True}, r"double_q=True .* needs target_mode='fixed_per_iteration' \(got target_mode="),
-        ({"double_q": 1, "target_mode": "fixed_per_iteration"}, "double_q must be True or False, got 1"),
-        *[
-            ({"round_step_size": value}, r"round_step_size must be a number in \(0, 1\], got")
-            for value in (0, 1.5, -0.5, True, "0.5")
-        ],
-        ({"keep_best": "yes"}, "keep_best must be True or False, got 'yes'"),
         ({"memory": "growing", "buffer_size": 100}, "buffer_size=100 is smaller than one round of 1024"),
     ],
 )

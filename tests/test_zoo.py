@@ -13,18 +13,15 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import optuna
 import pytest
 import yaml
 from optuna.storages.journal import JournalFileBackend
 from optuna.trial import TrialState
-from stable_baselines3.common.env_util import make_atari_env
 from stable_baselines3.common.type_aliases import TrainFreq
-from stable_baselines3.common.vec_env import VecFrameStack
 
 from sb3_nfq import NFQ
-from sb3_nfq.configs import RECOMMENDED, read_entry, zoo_to_kwargs
+from sb3_nfq.configs import ZOO_FILE, read_entry, zoo_to_kwargs
 from sb3_nfq.zoo import (
     ALGO_NAME,
     CATEGORICAL_SPACE,
@@ -115,9 +112,8 @@ def test_zoo_gets_the_arguments_untouched_after_the_nfq_defaults(
     assert zoo_arguments(command, args) == expected
 
 
-def test_packaged_hyperparameter_file_exists() -> None:
-    assert DEFAULT_CONF_FILE.is_file()
-    assert DEFAULT_CONF_FILE.parent.parent.name == "sb3_nfq"
+def test_packaged_hyperparameter_file_is_the_configs_file() -> None:
+    assert DEFAULT_CONF_FILE == ZOO_FILE and DEFAULT_CONF_FILE.is_file()
 
 
 def test_help_and_unknown_command(capsys: pytest.CaptureFixture[str]) -> None:
@@ -135,35 +131,6 @@ def _hyperparameter_file() -> dict[str, dict[str, Any]]:
         entries = yaml.safe_load(file)  # the zoo reads it with safe_load too
     assert isinstance(entries, dict)
     return entries
-
-
-@pytest.mark.parametrize("entry", [name for name in _hyperparameter_file() if name != "atari"])
-def test_every_entry_builds_nfq_and_trains_one_round(entry: str) -> None:
-    hyperparams = dict(_hyperparameter_file()[entry])
-    env_id = ENV_ID if entry == "default" else entry
-    if env_id == "LunarLander-v3":
-        pytest.importorskip("Box2D")
-    assert hyperparams.pop("n_timesteps") > 0
-    # As the zoo does: policy_kwargs strings evaluated, "lin_<x>" learning rates made linear schedules
-    model = NFQ(env=gym.make(env_id), seed=0, **zoo_to_kwargs(hyperparams))
-    assert isinstance(model.train_freq, TrainFreq)
-    model.learn(total_timesteps=model.train_freq.frequency)
-    assert model._n_updates > 0
-
-
-def test_atari_entry_builds_nfq_on_the_zoos_atari_stack_and_trains() -> None:
-    ale_py = pytest.importorskip("ale_py")
-    gym.register_envs(ale_py)
-    hyperparams = dict(_hyperparameter_file()["atari"])
-    # What the zoo builds from the entry: its wrapper, then frame stacking
-    assert hyperparams.pop("env_wrapper") == ["stable_baselines3.common.atari_wrappers.AtariWrapper"]
-    env = VecFrameStack(make_atari_env("PongNoFrameskip-v4", n_envs=1, seed=0), n_stack=hyperparams.pop("frame_stack"))
-    assert hyperparams.pop("n_timesteps") > 0
-    hyperparams.update(train_freq=64, gradient_steps=1)  # one small round: the entry's 4096 frames take minutes
-    model = NFQ(env=env, seed=0, **zoo_to_kwargs(hyperparams))
-    model.learn(total_timesteps=64)
-    assert model._n_updates == 1  # 64 < batch_size: one full-batch step
-    assert model.q_net(model.policy.obs_to_tensor(env.reset())[0]).shape == (1, 6)
 
 
 # --- the Optuna search space ---
@@ -199,9 +166,12 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
 
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A zoo training run of two NFQ rounds on CartPole, with evaluations and checkpoints; yields its folder."""
+    """
+    A zoo training run of 2048 steps on CartPole with the packaged entry, with evaluations and checkpoints; yields its
+    folder, where ``train_output.txt`` holds what it printed.
+    """
     workdir = tmp_path_factory.mktemp("zoo_train")
-    _check(
+    output = _check(
         _zoo(
             "train",
             "--env",
@@ -219,6 +189,7 @@ def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
             cwd=workdir,
         )
     )
+    (workdir / "train_output.txt").write_text(output)
     yield workdir
 
 
@@ -240,7 +211,7 @@ def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: 
     model = NFQ.load(run / f"{ENV_ID}.zip")
     assert model.num_timesteps == 2048
     assert isinstance(model.train_freq, TrainFreq)
-    entry = read_entry(RECOMMENDED[ENV_ID], ENV_ID)  # the config the zoo file holds for CartPole
+    entry = read_entry(ENV_ID)
     assert (model.train_freq.frequency, model.gradient_steps, model.gamma, model.memory) == (
         entry["train_freq"],
         entry["gradient_steps"],
@@ -248,6 +219,9 @@ def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: 
         entry["memory"],
     )
     assert model.policy.net_arch == zoo_to_kwargs(entry)["policy_kwargs"]["net_arch"]
+    # The entry's callback key reached learn(): KeepBestCallback logs the best score
+    assert entry["callback"] == "sb3_nfq.KeepBestCallback"
+    assert "best_score" in (trained_run / "train_output.txt").read_text()
     assert NFQ.load(run / "rl_model_1024_steps.zip").num_timesteps == 1024
     assert NFQ.load(run / "best_model.zip").num_timesteps in (1024, 2048)
 
@@ -258,6 +232,17 @@ def test_enjoy_runs_the_trained_agent(trained_run: Path) -> None:
     output = _check(_zoo("enjoy", "--env", ENV_ID, "--no-render", "-n", "600", "--deterministic", cwd=trained_run))
     assert f"Loading logs/{ALGO_NAME}/{ENV_ID}_1/{ENV_ID}.zip" in output
     assert "Mean reward:" in output
+
+
+def test_train_gives_learn_the_callbacks_of_the_entrys_callback_key(tmp_path: Path) -> None:
+    conf_file = tmp_path / "stop_after_one_episode.yml"
+    conf_file.write_text(
+        f"{ENV_ID}:\n  n_timesteps: 2048\n  policy: 'MlpPolicy'\n  callback:\n"
+        "    - stable_baselines3.common.callbacks.StopTrainingOnMaxEpisodes:\n        max_episodes: 1\n"
+    )
+    _check(_zoo("train", "--env", ENV_ID, "--conf-file", str(conf_file), "--eval-freq", "-1", cwd=tmp_path))
+    model = NFQ.load(tmp_path / "logs" / ALGO_NAME / f"{ENV_ID}_1" / f"{ENV_ID}.zip")
+    assert 0 < model.num_timesteps < 500  # stopped at the end of the first episode (CartPole's limit is 500 steps)
 
 
 def test_optimize_then_train_with_a_stored_trial(tmp_path: Path) -> None:

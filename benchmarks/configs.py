@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
+from sb3_nfq.configs import read_entry
 
 AlgoKind = Literal["nfq", "reference", "dqn", "qrdqn"]
 HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
@@ -105,15 +105,6 @@ def algorithm_names() -> list[str]:
     return [*NFQ_CONFIG_NAMES, REFERENCE, *peers]
 
 
-def _read_entry(env_id: str, path: Path) -> dict[str, Any]:
-    # merge: use sb3_nfq.configs.read_entry(env_id, path)
-    table = yaml.safe_load(path.read_text())
-    entry = table.get(env_id, table.get("default"))
-    if entry is None:
-        raise KeyError(f"{path} has no entry for {env_id} and no 'default' entry")
-    return dict(entry)
-
-
 def zoo_file(name: str) -> Path:
     """:return: the installed rl_zoo3 package's ``hyperparams/<name>`` (found without importing rl_zoo3)"""
     spec = importlib.util.find_spec("rl_zoo3")
@@ -134,17 +125,13 @@ def resolve(algo: str, env_id: str) -> ResolvedConfig:
     kind: AlgoKind
     if algo in NFQ_CONFIG_NAMES:
         kind, source = "nfq", f"benchmarks/hyperparams/{algo}.yml"
-        kwargs = _read_entry(env_id, HYPERPARAMS_DIR / f"{algo}.yml")
+        kwargs = read_entry(env_id, HYPERPARAMS_DIR / f"{algo}.yml")
     elif algo == REFERENCE:
         kind, source = "reference", "benchmarks/reference_nfq.py"
-        kwargs = {"n_timesteps": _read_entry(env_id, HYPERPARAMS_DIR / "nfq-book.yml")["n_timesteps"]}
+        kwargs = {"n_timesteps": read_entry(env_id, HYPERPARAMS_DIR / "nfq-book.yml")["n_timesteps"]}
     elif base in ZOO_PEERS:
         kind, file_name = ZOO_PEERS[base]
-        path = zoo_file(file_name)
-        table = yaml.safe_load(path.read_text())
-        if env_id not in table:
-            raise KeyError(f"{path} has no entry for {env_id}")
-        kwargs = dict(table[env_id])
+        kwargs = read_entry(env_id, zoo_file(file_name))
         if present := [key for key in ZOO_UNSUPPORTED_KEYS if key in kwargs]:
             raise NotImplementedError(f"the Zoo's {file_name} entry for {env_id} sets {present}, not applied here")
         if algo != base:

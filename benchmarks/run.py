@@ -394,7 +394,7 @@ def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
     normalize = vec_normalize_kwargs(kwargs.pop("normalize", False), kwargs.get("gamma"))
     callbacks: list[BaseCallback] = []
     if kwargs.pop("keep_best", False):
-        from sb3_nfq import KeepBestCallback  # type: ignore[attr-defined]  # merge: branch algo provides it
+        from sb3_nfq import KeepBestCallback
 
         callbacks.append(KeepBestCallback())
     algorithm_class: Any = {"nfq": NFQ, "dqn": DQN, "qrdqn": QRDQN}[job.kind]

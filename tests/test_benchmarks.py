@@ -150,13 +150,13 @@ def test_the_book_protocol_evaluates_after_every_training_episode(algo: str) -> 
     assert record["episodes_trained"] > 10 and record["curve"][-1][0] <= record["steps_trained"]
 
 
-@pytest.mark.skipif(not hasattr(sb3_nfq, "KeepBestCallback"), reason="sb3_nfq.KeepBestCallback: branch algo")
 def test_keep_best_configs_run_with_the_keep_best_callback() -> None:
     for algo in ("dqn-zoo-keep-best", "nfq-front-loaded-keep-best"):
-        model, callbacks = run.build_sb3_model(_job(algo))
-        assert [type(callback) for callback in callbacks] == [sb3_nfq.KeepBestCallback]  # type: ignore[attr-defined]
-        assert not hasattr(model, "keep_best") or not model.keep_best
+        _, callbacks = run.build_sb3_model(_job(algo))
+        assert [type(callback) for callback in callbacks] == [sb3_nfq.KeepBestCallback]
     assert run.build_sb3_model(_job("dqn-zoo"))[1] == []
+    record = run.run_job(_job("nfq-front-loaded-keep-best", budget=1500))
+    assert record["config"]["keep_best"] is True and record["curve"][-1][0] == record["steps_trained"]
 
 
 def test_runner_appends_resumes_and_lists_done_jobs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

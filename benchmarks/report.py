@@ -362,32 +362,20 @@ def judge(
     algo, env, kind = target["algo"], str(target.get("env")), target["kind"]
     if kind == "solved_envs":
         cells = {name: primary_cell(cells_by_env, name, algo) for name in configs.ENVS}
-        solved = sum(
-            bool(
-                c and c.n >= MIN_SEEDS and np.mean([r["steps_to_solve"] is not None for r in c.runs]) >= SOLVE_FRACTION
-            )
-            for c in cells.values()
-        )
-        unknown = sum(c is None or c.n < MIN_SEEDS for c in cells.values())
-        parts = [
-            f"{name}: {sum(r['solved'] for r in c.runs)}/{c.n}" if c else f"{name}: 0 seeds"
-            for name, c in cells.items()
+        known = [cell for cell in cells.values() if cell is not None and cell.n >= MIN_SEEDS]
+        solved = sum(bool(np.mean(cell.column("solved")) >= SOLVE_FRACTION) for cell in known)
+        if solved >= target["at_least"]:
+            verdict = "met"
+        elif solved + len(cells) - len(known) < target["at_least"]:
+            verdict = "not met"
+        else:
+            verdict = "not enough data"
+        seeds = [
+            f"{name}: {int(c.column('solved').sum())}/{c.n}" if c else f"{name}: 0 seeds" for name, c in cells.items()
         ]
-        verdict = (
-            "met"
-            if solved >= target["at_least"]
-            else "not met"
-            if solved + unknown < target["at_least"]
-            else "not enough data"
-        )
-        text = f"{solved} of {len(cells)} envs solved in ≥ 4/5 seeds ({'; '.join(parts)})"
-        return [
-            (
-                f"{algo} (one config) solves ≥ {target['at_least']} of the {len(cells)} envs in ≥ 4/5 seeds",
-                verdict,
-                text,
-            )
-        ]
+        text = f"{solved} of {len(cells)} envs solved in ≥ 4/5 seeds ({'; '.join(seeds)})"
+        claim = f"{algo} (one config) solves ≥ {target['at_least']} of the {len(cells)} envs in ≥ 4/5 seeds"
+        return [(claim, verdict, text)]
     if kind == "seconds_ratio":
         name = f"{algo} / {target['baseline']} median training seconds to the budget ≤ {target['high']:g}, "
         name += f"run side by side, on {env}"
@@ -405,10 +393,8 @@ def judge(
             cell = primary_cell(cells_by_env, env, algo, period, to_budget=True)
             threshold = configs.ENVS[env].threshold
             if cell is None or cell.n < MIN_SEEDS:
-                verdict, text = (
-                    "not enough data",
-                    f"needs {MIN_SEEDS} seeds run to the budget ({cell.n if cell else 0})",
-                )
+                verdict = "not enough data"
+                text = f"needs {MIN_SEEDS} seeds run to the budget ({cell.n if cell else 0})"
             else:
                 scores = ", ".join(f"{s:.0f}" for s in cell.column("final_score"))
                 verdict = "met" if cell.n_at_threshold() / cell.n >= SOLVE_FRACTION else "not met"

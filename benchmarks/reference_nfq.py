@@ -161,11 +161,16 @@ class ReferenceNFQ:
             q_values = self.q_net(th.as_tensor(np.asarray(observations, dtype=np.float32)))
         return q_values.argmax(dim=1).numpy()
 
-    def predict(self, observation: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+    def predict(
+        self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True
+    ) -> tuple[np.ndarray, None]:
         """
-        SB3-like helper: greedy (or epsilon-greedy) action(s) for one observation or a batch.
+        SB3's ``predict``, so that SB3's ``evaluate_policy`` can play it: greedy (or epsilon-greedy) action(s) for one
+        observation or a batch.
 
         :param observation: one observation ``(obs_dim,)`` or a batch ``(n, obs_dim)``
+        :param state: unused (no recurrent state)
+        :param episode_start: unused (no recurrent state)
         :param deterministic: greedy if True, epsilon-greedy otherwise
         :return: the action(s) and ``None`` (no recurrent state)
         """

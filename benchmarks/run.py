@@ -5,30 +5,23 @@ Benchmark runner: train (algorithm config x env x seed) jobs and append one JSON
         [--budget N] [--eval-every N] [--stop-at-solve] [--protocol rounds|book] [--workers 2]
         [--results benchmarks/results/runs.jsonl] [--ray-address local|auto|ray://host:10001] [--dry-run]
 
-Criterion, the same for every algorithm: after each NFQ round (each reference round; for DQN at the first rollout
-start at or after each multiple of ``eval_every`` env steps), the greedy policy plays ``N_EVAL_EPISODES`` = 100
-episodes on separate envs (fixed episode seeds, the same at every evaluation of a job), all in lockstep with one
-batched forward pass per step. The job is "solved" at the first evaluation whose mean return reaches the env's
-threshold; training goes on to the budget (unless ``--stop-at-solve``), then 100 new greedy episodes give the
-final score.
+Criterion (``--protocol rounds``, the default): at step 0, then after each NFQ or reference round (for DQN and
+QR-DQN: at the first rollout start) at or after each multiple of ``eval_every`` env steps, and at the end of training,
+the greedy policy plays 100 episodes with SB3's ``evaluate_policy`` on a ``VecEnv`` of 100 envs, episode ``i``
+starting from ``reset(seed=CURVE_SEED_BASE + 1000 * seed + i)``. A job is solved at the first evaluation whose mean
+reaches the env's threshold; training goes on to the budget (unless ``--stop-at-solve``), then 100 new episodes
+(``FINAL_SEED_BASE``) give the final score. ``--protocol book`` uses the book's criterion instead
+(``sb3_nfq.StopTrainingOnBookCriterion``); its records go to ``benchmarks/results/book_protocol.jsonl``.
 
-``--protocol book`` uses the criterion of the book's own code instead (:class:`sb3_nfq.BookCriterion`): after every
-training episode the greedy policy plays one episode on a separate env (its first reset seeded with
-``CURVE_SEED_BASE + 1000 * seed``); the job is solved, and stops, when the mean of the last 100 of those returns
-reaches the threshold. Its records go to ``benchmarks/results/book_protocol.jsonl`` by default.
-
-Timing: each job runs in its own process (spawned; or as a Ray task with ``num_cpus=1``) with
-``torch.set_num_threads(1)``, and at most as many jobs run at once as there are cores. ``train_seconds`` is the
-time spent in ``learn()`` minus the time spent evaluating inside it.
-
-Resumable: a job whose key (algo, env, seed, budget, config hash) is already in the results file is skipped.
+Timing: each job runs in its own spawned process (or Ray task with ``num_cpus=1``) with ``torch.set_num_threads(1)``,
+at most one job per core. ``train_seconds`` is the time in ``learn()`` minus the evaluations in it. Resumable: a job
+whose key (algo, env, seed, budget, config hash) is in the results file is skipped.
 """
 
 import argparse
 import concurrent.futures
 import contextlib
 import datetime
-import enum
 import hashlib
 import importlib.metadata
 import json
@@ -45,54 +38,43 @@ import traceback
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize, sync_envs_normalization
 
 from benchmarks import configs
 from sb3_nfq.callbacks import StopTrainingOnBookCriterion
 from sb3_nfq.configs import vec_normalize_kwargs, zoo_to_kwargs
 
-if TYPE_CHECKING:
-    from stable_baselines3.common.vec_env import VecEnv
-
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_RESULTS = REPO_ROOT / "benchmarks" / "results" / "runs.jsonl"
 DEFAULT_BOOK_RESULTS = REPO_ROOT / "benchmarks" / "results" / "book_protocol.jsonl"
-#: Evaluation protocols: "rounds" (100 greedy episodes after each round, the benchmark's), "book" (one greedy
-#: episode after each training episode, solved at the mean of the last BOOK_WINDOW, the book's code).
 PROTOCOLS = ("rounds", "book")
 BOOK_WINDOW = 100
 #: Bumped when the evaluation protocol changes, so that old results do not count as done.
 PROTOCOL_VERSION = 1
-#: Episode seeds: the learning-curve evaluations of seed s use CURVE_SEED_BASE + 1000 * s + i for episode i,
-#: the final evaluation FINAL_SEED_BASE + 1000 * s + i (episodes never seen during training).
 CURVE_SEED_BASE = 1_000_000
 FINAL_SEED_BASE = 2_000_000
-
-Actor = Callable[[np.ndarray], np.ndarray]
-
-
-# --- machine and versions ---------------------------------------------------------------------------------------
+Key = tuple[str, str, int, int, str]
 
 
 def usable_cores() -> int:
     """:return: the number of CPU cores this process may run on"""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def machine_line() -> str:
     """:return: one line describing this machine: CPU model, cores, memory, OS"""
     model = platform.processor() or platform.machine()
     with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
+        names = [line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name")]
+        model = names[0].split(":", 1)[1].strip() if names else model
     memory = ""
     with contextlib.suppress(ValueError, OSError, AttributeError):
         memory = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.0f} GiB RAM"
@@ -101,42 +83,34 @@ def machine_line() -> str:
 
 def package_versions() -> dict[str, str]:
     """:return: versions of the packages a result depends on"""
-    import stable_baselines3
-
-    import sb3_nfq
-
-    versions = {
-        "sb3_nfq": sb3_nfq.__version__,
-        "stable_baselines3": stable_baselines3.__version__,
-        "torch": th.__version__,
-        "gymnasium": gym.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-    }
-    with contextlib.suppress(importlib.metadata.PackageNotFoundError):
-        versions["rl_zoo3"] = importlib.metadata.version("rl_zoo3")
+    names = ("sb3_nfq", "stable_baselines3", "sb3_contrib", "torch", "gymnasium", "numpy", "rl_zoo3")
+    versions = {"python": platform.python_version()}
+    for name in names:
+        with contextlib.suppress(importlib.metadata.PackageNotFoundError):
+            versions[name] = importlib.metadata.version(name.replace("_", "-"))
     return versions
 
 
 def git_revision() -> str | None:
     """:return: the repository's commit (with ``+dirty`` if sb3_nfq/ or benchmarks/ have local changes), if known"""
     try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--", "sb3_nfq", "benchmarks"],
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
+        git = ["git", "-C", str(REPO_ROOT)]
+        commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
+        status = [*git, "status", "--porcelain", "--", "sb3_nfq", "benchmarks"]
+        dirty = subprocess.run(status, capture_output=True, text=True, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return None
-    return commit + ("+dirty" if dirty else "")
+    return commit.stdout.strip() + ("+dirty" if dirty else "")
 
 
-# --- jobs -------------------------------------------------------------------------------------------------------
+def relative_command(module: str, argv: Sequence[str]) -> str:
+    """:return: the command line, with the paths inside the repository written relative to its root"""
+    arguments = []
+    for argument in argv:
+        path = Path(argument)
+        is_inside = path.is_absolute() and path.resolve().is_relative_to(REPO_ROOT)
+        arguments.append(str(path.resolve().relative_to(REPO_ROOT)) if is_inside else argument)
+    return shlex.join(["python", "-m", module, *arguments])
 
 
 @dataclass(frozen=True)
@@ -145,7 +119,7 @@ class Job:
     One training run: an algorithm config on one env with one seed.
 
     :param algo: algorithm config name
-    :param kind: ``nfq``, ``reference`` or ``dqn``
+    :param kind: ``nfq``, ``reference``, ``dqn`` or ``qrdqn``
     :param env_id: gymnasium env id
     :param seed: random seed (model, training env, evaluation episodes)
     :param budget: env-step budget
@@ -154,7 +128,7 @@ class Job:
     :param eval_every: evaluation period in env steps
     :param n_eval_episodes: greedy episodes per evaluation
     :param stop_at_solve: stop training at the first solved evaluation
-    :param protocol: ``"rounds"`` or ``"book"`` (see :data:`PROTOCOLS`; the book's protocol always stops at solve)
+    :param protocol: ``"rounds"`` or ``"book"`` (the book's protocol always stops at solve)
     :param source: where the config comes from
     :param command: the runner command that created the job
     :param git: the repository revision of the driver
@@ -192,7 +166,7 @@ class Job:
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:12]
 
     @property
-    def key(self) -> tuple[str, str, int, int, str]:
+    def key(self) -> Key:
         """:return: the resumability key (algo, env, seed, budget, config hash)"""
         return (self.algo, self.env_id, self.seed, self.budget, self.config_hash)
 
@@ -226,32 +200,27 @@ def make_jobs(
     jobs = []
     for algo in algos:
         for env_id in envs:
-            config = configs.resolve(algo, env_id)
-            for seed in seeds:
-                jobs.append(
-                    Job(
-                        algo=algo,
-                        kind=config.kind,
-                        env_id=env_id,
-                        seed=seed,
-                        budget=budget if budget is not None else config.budget,
-                        kwargs=config.kwargs,
-                        threshold=config.threshold,
-                        eval_every=eval_every if eval_every is not None else config.eval_every,
-                        n_eval_episodes=n_eval_episodes,
-                        stop_at_solve=stop_at_solve or protocol == "book",
-                        protocol=protocol,
-                        source=config.source,
-                        command=command,
-                        git=git,
-                    )
+            config, spec = configs.resolve(algo, env_id), configs.ENVS[env_id]
+            jobs += [
+                Job(
+                    algo=algo,
+                    kind=config.kind,
+                    env_id=env_id,
+                    seed=seed,
+                    budget=budget if budget is not None else config.budget,
+                    kwargs=config.kwargs,
+                    threshold=spec.threshold,
+                    eval_every=eval_every if eval_every is not None else spec.eval_every,
+                    n_eval_episodes=n_eval_episodes,
+                    stop_at_solve=stop_at_solve or protocol == "book",
+                    protocol=protocol,
+                    source=config.source,
+                    command=command,
+                    git=git,
                 )
+                for seed in seeds
+            ]
     return jobs
-
-
-def result_key(record: dict[str, Any]) -> tuple[str, str, int, int, str]:
-    """:return: the resumability key of a result line"""
-    return (record["algo"], record["env"], int(record["seed"]), int(record["budget"]), record["config_hash"])
 
 
 def read_results(path: Path) -> list[dict[str, Any]]:
@@ -259,112 +228,102 @@ def read_results(path: Path) -> list[dict[str, Any]]:
     :param path: a results file (JSON lines); missing means empty
     :return: its records (a line that is not valid JSON, e.g. cut by a crash, is skipped with a warning)
     """
-    if not path.exists():
-        return []
     records = []
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
+    for number, line in enumerate(path.read_text().splitlines() if path.exists() else [], start=1):
         try:
-            records.append(json.loads(line))
+            records += [json.loads(line)] if line.strip() else []
         except json.JSONDecodeError:
             print(f"warning: {path}:{number} is not valid JSON, ignored", file=sys.stderr)
     return records
 
 
-def append_result(path: Path, record: dict[str, Any]) -> None:
-    """Append one JSON line (only the driver process writes, so lines never interleave)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("a") as file:
-        file.write(json.dumps(record) + "\n")
-        file.flush()
-        os.fsync(file.fileno())
+def result_key(record: dict[str, Any]) -> Key:
+    """:return: the resumability key of a result line"""
+    return (record["algo"], record["env"], int(record["seed"]), int(record["budget"]), record["config_hash"])
 
 
 # --- evaluation -------------------------------------------------------------------------------------------------
 
 
-class GreedyEvaluator:
+def make_env(env_id: str, n_envs: int, seed: int | None = None, normalize: dict[str, Any] | None = None) -> VecEnv:
     """
-    Plays ``n_episodes`` episodes at once, one per env, with a batched greedy policy: each step, one call of
-    ``act`` on the observations of the episodes still running. Episode ``i`` always starts from
-    ``reset(seed=seed_base + i)``, so every evaluation of a job uses the same start states.
+    SB3's ``make_vec_env`` with no render mode (given an env id, SB3 asks for ``rgb_array``, and LunarLander then
+    simulates exhaust particles for drawing, which slows its steps without changing an observation).
+
+    :param env_id: gymnasium env id
+    :param n_envs: number of envs
+    :param seed: seed of the first env (env ``i`` gets ``seed + i``)
+    :param normalize: ``VecNormalize`` arguments, if the config normalises
+    :return: a ``DummyVecEnv`` of ``Monitor``-wrapped envs, in ``VecNormalize`` if asked
+    """
+    env = make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs={"render_mode": None})
+    return env if normalize is None else VecNormalize(env, **normalize)
+
+
+class Evaluations:
+    """
+    The greedy evaluations of one job: ``n_episodes`` episodes with ``evaluate_policy`` on as many envs, episode
+    ``i`` from ``reset(seed=seed_base + i)`` at every evaluation. With a ``VecNormalize`` training env, the
+    evaluation env normalises observations with its statistics, synced before each evaluation and never updated.
 
     :param env_id: gymnasium env id
     :param n_episodes: episodes per evaluation
-    :param seed_base: seed of the first episode
-    """
-
-    def __init__(self, env_id: str, n_episodes: int, seed_base: int) -> None:
-        self.envs = [gym.make(env_id) for _ in range(n_episodes)]
-        self.seeds = [seed_base + i for i in range(n_episodes)]
-
-    def evaluate(self, act: Actor) -> np.ndarray:
-        """
-        :param act: greedy policy on a batch of observations ``(k, obs_dim) -> (k,)``
-        :return: the return of each episode
-        """
-        observations = np.stack([env.reset(seed=seed)[0] for env, seed in zip(self.envs, self.seeds, strict=True)])
-        returns = np.zeros(len(self.envs))
-        running = np.arange(len(self.envs))
-        while running.size:
-            actions = np.asarray(act(observations[running])).reshape(-1)
-            still_running = []
-            for index, action in zip(running, actions, strict=True):
-                obs, reward, terminated, truncated, _ = self.envs[index].step(int(action))
-                returns[index] += float(reward)
-                observations[index] = obs
-                if not (terminated or truncated):
-                    still_running.append(index)
-            running = np.asarray(still_running, dtype=int)
-        return returns
-
-
-class SolveTracker:
-    """
-    Runs the periodic greedy evaluations of one job and keeps its learning curve and the time spent evaluating; fed
-    the training steps' episode ends (:meth:`count_episode_ends`), it also keeps, per evaluation, how many training
-    episodes ended since the previous one and how many of those by termination (on MountainCar: at the goal).
-
-    :param evaluator: plays the evaluation episodes
     :param threshold: solved when the mean return reaches this
-    :param eval_every: evaluate at the first call at or after each multiple of this many env steps
+    :param eval_every: evaluate at the first call of :meth:`maybe_evaluate` at or after each multiple of this
     :param stop_at_solve: ask training to stop at the first solved evaluation
+    :param normalize: the training env's ``VecNormalize`` arguments, if any
     """
 
-    def __init__(self, evaluator: GreedyEvaluator, threshold: float, eval_every: int, stop_at_solve: bool) -> None:
-        self.evaluator = evaluator
-        self.threshold = threshold
-        self.eval_every = eval_every
-        self.stop_at_solve = stop_at_solve
+    def __init__(
+        self,
+        env_id: str,
+        n_episodes: int,
+        threshold: float,
+        eval_every: int,
+        stop_at_solve: bool,
+        normalize: dict[str, Any] | None = None,
+    ) -> None:
+        eval_normalize = None if normalize is None else {**normalize, "training": False, "norm_reward": False}
+        self.env = make_env(env_id, n_episodes, normalize=eval_normalize)
+        self.n_episodes, self.threshold = n_episodes, threshold
+        self.eval_every, self.stop_at_solve = eval_every, stop_at_solve
         self.curve: list[list[float]] = []
+        self.episode_ends: list[list[int]] = []
         self.steps_to_solve: int | None = None
         self.eval_seconds = 0.0
         self.stopped = False
-        self._next_eval = 0
-        self.episode_ends: list[list[int]] = []
-        self.counts_episode_ends = False
-        self._ended = self._terminated = 0
+        self._next_eval = self._ended = self._terminated = 0
+
+    def returns(self, model: Any, seed_base: int, train_env: VecEnv | None = None) -> np.ndarray:
+        """
+        :param model: what ``evaluate_policy`` plays (an SB3 model, or anything with SB3's ``predict``)
+        :param seed_base: seed of episode 0
+        :param train_env: the training env, whose normalisation statistics the evaluation uses
+        :return: the episodes' returns
+        """
+        if train_env is not None and isinstance(self.env, VecNormalize):
+            sync_envs_normalization(train_env, self.env)
+        self.env.seed(seed_base)
+        returns, _ = evaluate_policy(model, self.env, self.n_episodes, deterministic=True, return_episode_rewards=True)
+        return np.asarray(returns, dtype=float)
 
     def count_episode_ends(self, dones: np.ndarray, infos: Sequence[dict[str, Any]]) -> None:
-        """
-        :param dones: one training ``VecEnv.step()``'s done flags
-        :param infos: its infos (a time-limit truncation sets ``TimeLimit.truncated``)
-        """
-        self.counts_episode_ends = True
+        """:param dones: one training step's done flags :param infos: its infos"""
         for done, info in zip(dones, infos, strict=True):
-            if done:
-                self._ended += 1
-                self._terminated += int(not info.get("TimeLimit.truncated", False))
+            self._ended += int(done)
+            self._terminated += int(done and not info.get("TimeLimit.truncated", False))
 
-    def evaluate(self, steps: int, act: Actor) -> float:
+    def evaluate(self, steps: int, model: Any, seed_base: int, train_env: VecEnv | None = None) -> None:
         """
+        Add a point to the learning curve.
+
         :param steps: env steps trained so far
-        :param act: greedy policy
-        :return: the mean greedy return, also added to the curve
+        :param model: what ``evaluate_policy`` plays
+        :param seed_base: seed of episode 0
+        :param train_env: the training env, whose normalisation statistics the evaluation uses
         """
         start = time.perf_counter()
-        mean = float(np.mean(self.evaluator.evaluate(act)))
+        mean = float(np.mean(self.returns(model, seed_base, train_env)))
         self.eval_seconds += time.perf_counter() - start
         self.curve.append([steps, mean])
         self.episode_ends.append([steps, self._ended, self._terminated])
@@ -372,99 +331,134 @@ class SolveTracker:
         self._next_eval = (steps // self.eval_every + 1) * self.eval_every
         if mean >= self.threshold and self.steps_to_solve is None:
             self.steps_to_solve = steps
-        return mean
 
-    def maybe_evaluate(self, steps: int, act: Actor) -> bool:
+    def maybe_evaluate(self, steps: int, model: Any, seed_base: int, train_env: VecEnv | None = None) -> bool:
         """
-        :param steps: env steps trained so far
-        :param act: greedy policy
+        Evaluate if a multiple of ``eval_every`` was reached (see :meth:`evaluate` for the parameters).
+
         :return: whether training should go on
         """
         if steps >= self._next_eval:
-            self.evaluate(steps, act)
+            self.evaluate(steps, model, seed_base, train_env)
         self.stopped = self.stop_at_solve and self.steps_to_solve is not None
         return not self.stopped
 
-    def finish(self, steps: int, act: Actor) -> None:
+    def finish(self, steps: int, model: Any, seed_base: int, train_env: VecEnv | None = None) -> None:
         """Evaluate the final policy unless it was just evaluated or training stopped at the solve."""
         if not self.stopped and (not self.curve or self.curve[-1][0] != steps):
-            self.evaluate(steps, act)
+            self.evaluate(steps, model, seed_base, train_env)
 
 
-def _round_end_callback(tracker: SolveTracker, act: Actor) -> Any:
+class RoundEndEvaluation(BaseCallback):
     """
-    :param tracker: the job's evaluations
-    :param act: the model's greedy policy
-    :return: an SB3 callback that evaluates at rollout starts (for NFQ: right after the previous round's fit) and
-        at the end of training
+    Evaluates at rollout starts (for NFQ: right after the previous round's fit; SB3's ``EvalCallback`` evaluates
+    every ``eval_freq`` steps, inside a round) and at the end of training; counts the training episodes' ends.
+
+    :param evaluations: the job's evaluations
+    :param seed_base: the evaluation episodes' first seed
     """
-    from stable_baselines3.common.callbacks import BaseCallback
 
-    class RoundEndEvaluation(BaseCallback):
-        def __init__(self) -> None:
-            super().__init__()
-            self.keep_training = True
+    def __init__(self, evaluations: Evaluations, seed_base: int) -> None:
+        super().__init__()
+        self.evaluations, self.seed_base, self.keep_training = evaluations, seed_base, True
 
-        def _on_rollout_start(self) -> None:
-            self.keep_training = tracker.maybe_evaluate(self.model.num_timesteps, act)
+    def _on_rollout_start(self) -> None:
+        self.keep_training = self.evaluations.maybe_evaluate(
+            self.num_timesteps, self.model, self.seed_base, self.model.get_env()
+        )
 
-        def _on_step(self) -> bool:
-            tracker.count_episode_ends(self.locals["dones"], self.locals["infos"])
-            return self.keep_training
+    def _on_step(self) -> bool:
+        self.evaluations.count_episode_ends(self.locals["dones"], self.locals["infos"])
+        return self.keep_training
 
-        def _on_training_end(self) -> None:
-            tracker.finish(self.model.num_timesteps, act)
-
-    return RoundEndEvaluation()
+    def _on_training_end(self) -> None:
+        self.evaluations.finish(self.num_timesteps, self.model, self.seed_base, self.model.get_env())
 
 
 # --- training ---------------------------------------------------------------------------------------------------
 
 
-@dataclass
-class Trained:
+def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
     """
-    What a trainer hands back: env steps trained, greedy policy, seconds in learn(), effective settings, and the
-    divergence error if training stopped on a non-finite loss (then ``steps`` is where it stopped).
+    :param job: an NFQ, DQN or QR-DQN job
+    :return: its model on its training envs (``VecNormalize`` where the config's ``normalize`` asks, as the RL Zoo
+        does) and the callbacks its config asks for (``keep_best``: ``sb3_nfq.KeepBestCallback``)
     """
+    from sb3_contrib import QRDQN
+    from stable_baselines3 import DQN
 
-    steps: int
-    act: Actor
-    learn_seconds: float
-    effective: dict[str, Any]
-    diverged: str | None = None
+    from sb3_nfq import NFQ
 
+    kwargs = dict(job.kwargs)
+    n_envs, policy = int(kwargs.pop("n_envs", 1)), kwargs.pop("policy", "MlpPolicy")
+    normalize = vec_normalize_kwargs(kwargs.pop("normalize", False), kwargs.get("gamma"))
+    callbacks: list[BaseCallback] = []
+    if kwargs.pop("keep_best", False):
+        from sb3_nfq import KeepBestCallback
 
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, type):
-        return f"{value.__module__}.{value.__qualname__}"
-    if isinstance(value, enum.Enum):
-        return value.value
-    if isinstance(value, list | tuple):
-        return [_jsonable(item) for item in value]
-    if isinstance(value, dict):
-        return {str(key): _jsonable(item) for key, item in value.items()}
-    if value is None or isinstance(value, bool | int | float | str):
-        return value
-    return repr(value)
+        callbacks.append(KeepBestCallback())
+    algorithm_class: Any = {"nfq": NFQ, "dqn": DQN, "qrdqn": QRDQN}[job.kind]
+    env = make_env(job.env_id, n_envs, job.seed, normalize)
+    return algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs)), callbacks
 
 
-def make_training_env(env_id: str, n_envs: int, seed: int) -> "VecEnv":
+def _effective(model: Any) -> dict[str, Any]:
+    names = ["learning_rate", "gamma", "batch_size", "buffer_size", "learning_starts", "train_freq"]
+    names += ["gradient_steps", "target_update_interval", "exploration_initial_eps", "exploration_final_eps"]
+    names += ["exploration_fraction", "loss", "max_grad_norm", "n_envs"]
+    effective = {
+        name: json.loads(json.dumps(getattr(model, name), default=repr)) for name in names if hasattr(model, name)
+    }
+    effective["policy"] = type(model.policy).__name__
+    effective["net_arch"] = getattr(model.policy, "net_arch", None)
+    effective["optimizer"] = type(model.policy.optimizer).__name__
+    return effective
+
+
+def train(job: Job, tracker: Evaluations | StopTrainingOnBookCriterion, curve_seed: int) -> tuple[Any, dict[str, Any]]:
     """
-    The training envs of NFQ and DQN: SB3's ``make_vec_env``, but with no render mode, like the reference's
-    ``gym.make(env_id)`` and the evaluation envs. Given an env id, SB3 asks for ``render_mode="rgb_array"``;
-    LunarLander then simulates exhaust particles as Box2D bodies at every engine firing (for drawing only: they
-    collide with the ground, never the lander). That slows SB3 algorithms' LunarLander steps against the
-    reference's without changing a single observation.
-
-    :param env_id: gymnasium env id
-    :param n_envs: number of envs
-    :param seed: seed of the first env (SB3's convention: env ``i`` gets ``seed + i``)
-    :return: a ``DummyVecEnv`` of ``Monitor``-wrapped envs
+    :param job: the job
+    :param tracker: its evaluations (``--protocol rounds``) or the book's criterion
+    :param curve_seed: the first seed of the learning curve's evaluation episodes
+    :return: the trained model (what ``evaluate_policy`` plays) and a record of its training
     """
-    from stable_baselines3.common.env_util import make_vec_env
+    from benchmarks.reference_nfq import ReferenceNFQ
+    from sb3_nfq import NFQDivergenceError
 
-    return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs={"render_mode": None})
+    diverged, start = None, time.perf_counter()
+    if job.kind == "reference":
+        model: Any = ReferenceNFQ(job.env_id, seed=job.seed, **job.kwargs)
+        if isinstance(tracker, StopTrainingOnBookCriterion):
+
+            def after_episode(agent: ReferenceNFQ) -> bool:
+                def greedy(observation: np.ndarray) -> int:
+                    return int(agent.act(observation[None])[0])
+
+                return not tracker.criterion.on_training_episode_end(agent.num_timesteps, greedy)
+
+            model.learn(job.budget, episode_callback=after_episode)
+        else:  # evaluated at step 0, as SB3's learn() does at its first rollout start
+            tracker.maybe_evaluate(0, model, curve_seed)
+            model.learn(
+                job.budget, callback=lambda agent: tracker.maybe_evaluate(agent.num_timesteps, agent, curve_seed)
+            )
+            tracker.finish(model.num_timesteps, model, curve_seed)
+        names = ("gamma", "epsilon", "transitions_per_round", "fitting_iterations")
+        effective = {name: getattr(model, name) for name in names}
+        effective |= {"learning_rate": model.optimizer.param_groups[0]["lr"], "optimizer": "RMSprop"}
+    else:
+        model, callbacks = build_sb3_model(job)
+        evaluation = (
+            tracker if isinstance(tracker, StopTrainingOnBookCriterion) else RoundEndEvaluation(tracker, curve_seed)
+        )
+        try:  # keep_best restores its weights before the last evaluation, at the end of learn()
+            model.learn(job.budget, callback=CallbackList([*callbacks, evaluation]))
+        except NFQDivergenceError as error:  # a result like any other: recorded, not retried
+            diverged = str(error)
+        effective = _effective(model)
+    effective["q_net"] = str(model.q_net if job.kind == "reference" else model.policy).replace("\n", "")
+    trained = {"steps_trained": model.num_timesteps, "diverged": diverged}
+    return model, {**trained, "learn_seconds": time.perf_counter() - start, "effective_hyperparams": effective}
 
 
 def book_curve(callback: StopTrainingOnBookCriterion, every: int) -> list[list[float]]:
@@ -473,8 +467,7 @@ def book_curve(callback: StopTrainingOnBookCriterion, every: int) -> list[list[f
     :param every: keep the first evaluation at or after each multiple of this many env steps, and the last
     :return: ``[steps, mean of the last BOOK_WINDOW evaluation returns]`` at those evaluations
     """
-    criterion, curve = callback.criterion, []
-    next_point = 0
+    criterion, curve, next_point = callback.criterion, [], 0
     for index, steps in enumerate(criterion.evaluation_steps):
         if steps >= next_point or index == len(criterion.evaluation_steps) - 1:
             window = criterion.evaluation_returns[max(0, index + 1 - criterion.window) : index + 1]
@@ -483,110 +476,9 @@ def book_curve(callback: StopTrainingOnBookCriterion, every: int) -> list[list[f
     return curve
 
 
-def build_sb3_model(job: Job) -> Any:
-    """
-    :param job: an NFQ or DQN job
-    :return: its model (SB3's ``NFQ`` or ``DQN``) on its training envs (:func:`make_training_env`), wrapped in
-        ``VecNormalize`` where the config's ``normalize`` key asks for it, as the RL Zoo does
-    """
-    from stable_baselines3 import DQN
-    from stable_baselines3.common.vec_env import VecNormalize
-
-    from sb3_nfq import NFQ
-
-    kwargs = dict(job.kwargs)
-    n_envs = int(kwargs.pop("n_envs", 1))
-    policy = kwargs.pop("policy", "MlpPolicy")
-    normalize = vec_normalize_kwargs(kwargs.pop("normalize", False), kwargs.get("gamma"))
-    algorithm_class: Any = NFQ if job.kind == "nfq" else DQN
-    env = make_training_env(job.env_id, n_envs=n_envs, seed=job.seed)
-    if normalize is not None:
-        env = VecNormalize(env, **normalize)
-    return algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs))
-
-
-def _train_sb3(job: Job, tracker: SolveTracker | StopTrainingOnBookCriterion) -> Trained:
-    from sb3_nfq import NFQDivergenceError
-
-    model = build_sb3_model(job)
-    vec_normalize = model.get_vec_normalize_env()
-
-    def act(observations: np.ndarray) -> np.ndarray:
-        # Evaluation episodes see the training env's running statistics as they are now, without updating them
-        # (the RL Zoo's evaluation env: VecNormalize with training=False, synced before each evaluation).
-        if vec_normalize is not None:
-            observations = vec_normalize.normalize_obs(observations)
-        return model.predict(observations, deterministic=True)[0]
-
-    start = time.perf_counter()
-    diverged = None
-    try:
-        callback = tracker if isinstance(tracker, StopTrainingOnBookCriterion) else _round_end_callback(tracker, act)
-        model.learn(job.budget, callback=callback)
-    except NFQDivergenceError as error:  # a result like any other: recorded, not retried
-        diverged = str(error)
-    learn_seconds = time.perf_counter() - start
-
-    names = [
-        "learning_rate",
-        "gamma",
-        "batch_size",
-        "buffer_size",
-        "learning_starts",
-        "train_freq",
-        "gradient_steps",
-        "target_update_interval",
-        "exploration_initial_eps",
-        "exploration_final_eps",
-        "exploration_fraction",
-        "loss",
-        "max_grad_norm",
-        "n_envs",
-    ]
-    effective = {name: _jsonable(getattr(model, name)) for name in names if hasattr(model, name)}
-    effective["policy"] = type(model.policy).__name__
-    effective["net_arch"] = _jsonable(getattr(model.policy, "net_arch", None))
-    effective["optimizer"] = type(model.policy.optimizer).__name__
-    effective["q_net"] = str(model.q_net.q_net).replace("\n", "")
-    if vec_normalize is not None:
-        effective["vec_normalize"] = {"norm_obs": vec_normalize.norm_obs, "norm_reward": vec_normalize.norm_reward}
-    return Trained(model.num_timesteps, act, learn_seconds, effective, diverged)
-
-
-def _train_reference(job: Job, tracker: SolveTracker | StopTrainingOnBookCriterion) -> Trained:
-    from benchmarks.reference_nfq import ReferenceNFQ
-
-    agent = ReferenceNFQ(job.env_id, seed=job.seed, **job.kwargs)
-    start = time.perf_counter()
-    if isinstance(tracker, StopTrainingOnBookCriterion):
-        criterion = tracker.criterion
-
-        def after_episode(trained: ReferenceNFQ) -> bool:
-            holds = criterion.on_training_episode_end(trained.num_timesteps, lambda obs: int(trained.act(obs[None])[0]))
-            return not holds
-
-        agent.learn(job.budget, episode_callback=after_episode)
-    else:  # includes the evaluation at step 0, as SB3's learn() does
-        tracker.maybe_evaluate(0, agent.act)
-        agent.learn(job.budget, callback=lambda trained: tracker.maybe_evaluate(trained.num_timesteps, trained.act))
-        tracker.finish(agent.num_timesteps, agent.act)
-    learn_seconds = time.perf_counter() - start
-    effective = {
-        "gamma": agent.gamma,
-        "epsilon": agent.epsilon,
-        "transitions_per_round": agent.transitions_per_round,
-        "fitting_iterations": agent.fitting_iterations,
-        "learning_rate": agent.optimizer.param_groups[0]["lr"],
-        "optimizer": type(agent.optimizer).__name__,
-        "q_net": str(agent.q_net).replace("\n", ""),
-    }
-    return Trained(agent.num_timesteps, agent.act, learn_seconds, effective)
-
-
 def run_job(job: Job) -> dict[str, Any]:
     """
-    Train one job and evaluate it. Pins ``torch.set_num_threads(1)``. Top-level, so worker processes and Ray
-    tasks can run it.
+    Train one job and evaluate it, with one torch thread. Top-level, so that worker processes and Ray tasks can run it.
 
     :param job: the job
     :return: its result record (one JSON line)
@@ -594,20 +486,16 @@ def run_job(job: Job) -> dict[str, Any]:
     wall_start = time.perf_counter()
     th.set_num_threads(1)
     curve_seed, final_seed = CURVE_SEED_BASE + 1000 * job.seed, FINAL_SEED_BASE + 1000 * job.seed
-    tracker: SolveTracker | StopTrainingOnBookCriterion
+    normalize = vec_normalize_kwargs(job.kwargs.get("normalize", False), job.kwargs.get("gamma"))
+    evaluations = Evaluations(
+        job.env_id, job.n_eval_episodes, job.threshold, job.eval_every, job.stop_at_solve, normalize
+    )
+    tracker: Evaluations | StopTrainingOnBookCriterion = evaluations
     if job.protocol == "book":
-        tracker = StopTrainingOnBookCriterion(
-            gym.make(job.env_id), threshold=job.threshold, window=BOOK_WINDOW, seed=curve_seed
-        )
-    else:
-        tracker = SolveTracker(
-            GreedyEvaluator(job.env_id, job.n_eval_episodes, curve_seed),
-            job.threshold,
-            job.eval_every,
-            job.stop_at_solve,
-        )
-    trained = (_train_reference if job.kind == "reference" else _train_sb3)(job, tracker)
-    final_returns = GreedyEvaluator(job.env_id, job.n_eval_episodes, final_seed).evaluate(trained.act)
+        tracker = StopTrainingOnBookCriterion(gym.make(job.env_id), job.threshold, BOOK_WINDOW, seed=curve_seed)
+    model, trained = train(job, tracker, curve_seed)
+    train_env = model.get_env() if job.kind != "reference" else None
+    final_returns = evaluations.returns(model, final_seed, train_env)
     if isinstance(tracker, StopTrainingOnBookCriterion):
         criterion = tracker.criterion
         outcome: dict[str, Any] = {
@@ -618,19 +506,17 @@ def run_job(job: Job) -> dict[str, Any]:
             "episodes_to_solve": criterion.episodes_to_solve,
             "episodes_trained": len(criterion.evaluation_returns),
             "stopped_at_solve": criterion.solved,
-            "eval_seconds": criterion.eval_seconds,
-            "curve": book_curve(tracker, job.eval_every),
         }
+        eval_seconds, curve = criterion.eval_seconds, book_curve(tracker, job.eval_every)
     else:
         outcome = {
-            "solved": tracker.steps_to_solve is not None,
-            "steps_to_solve": tracker.steps_to_solve,
-            "stopped_at_solve": tracker.stopped,
-            "eval_seconds": tracker.eval_seconds,
-            "curve": tracker.curve,
+            "solved": evaluations.steps_to_solve is not None,
+            "steps_to_solve": evaluations.steps_to_solve,
+            "stopped_at_solve": evaluations.stopped,
             # [steps, training episodes ended since the previous evaluation, how many of them by termination]
-            "train_episode_ends": tracker.episode_ends if tracker.counts_episode_ends else None,
+            "train_episode_ends": evaluations.episode_ends if job.kind != "reference" else None,
         }
+        eval_seconds, curve = evaluations.eval_seconds, evaluations.curve
     return {
         "algo": job.algo,
         "env": job.env_id,
@@ -640,22 +526,22 @@ def run_job(job: Job) -> dict[str, Any]:
         "kind": job.kind,
         "config": job.kwargs,
         "config_source": job.source,
-        "effective_hyperparams": trained.effective,
+        "effective_hyperparams": trained["effective_hyperparams"],
         "threshold": job.threshold,
         "n_eval_episodes": job.n_eval_episodes,
         "eval_every": job.eval_every,
         "eval_seeds": {"curve": curve_seed, "final": final_seed},
         "stop_at_solve": job.stop_at_solve,
-        **{key: value for key, value in outcome.items() if key not in ("eval_seconds", "curve")},
-        "steps_trained": trained.steps,
-        "diverged": trained.diverged,
+        **outcome,
+        "steps_trained": trained["steps_trained"],
+        "diverged": trained["diverged"],
         "final_score": float(np.mean(final_returns)),
         "final_score_std": float(np.std(final_returns)),
         "final_n_episodes": len(final_returns),
-        "train_seconds": round(trained.learn_seconds - outcome["eval_seconds"], 3),
-        "eval_seconds": round(outcome["eval_seconds"], 3),
+        "train_seconds": round(trained["learn_seconds"] - eval_seconds, 3),
+        "eval_seconds": round(eval_seconds, 3),
         "wall_seconds": round(time.perf_counter() - wall_start, 3),
-        "curve": [[int(steps), round(mean, 3)] for steps, mean in outcome["curve"]],
+        "curve": [[int(steps), round(mean, 3)] for steps, mean in curve],
         "torch_threads": th.get_num_threads(),
         "versions": package_versions(),
         "machine": machine_line(),
@@ -670,96 +556,70 @@ def run_job(job: Job) -> dict[str, Any]:
 # --- execution --------------------------------------------------------------------------------------------------
 
 
-def _describe(record: dict[str, Any]) -> str:
-    solved = f"solved at {record['steps_to_solve']}" if record["solved"] else "not solved"
-    if record.get("episodes_to_solve") is not None:
-        solved += f" ({record['episodes_to_solve']} episodes)"
-    if record.get("diverged"):
-        solved += ", then the loss diverged" if record["solved"] else ", the loss diverged"
-    return (
-        f"{record['algo']} {record['env']} seed {record['seed']}: {solved}, final {record['final_score']:.1f} "
-        f"at {record['steps_trained']} steps, train {record['train_seconds']:.1f}s, wall {record['wall_seconds']:.1f}s"
-    )
-
-
-def exit_with_parent(parent: int, poll_seconds: float = 1.0) -> None:
+def exit_with_parent(parent: int) -> None:
     """
-    Pool-worker initializer: end this worker once the runner that spawned it is gone. A runner stopped by a signal
-    (``kill``, ``pkill``: no ``finally`` runs) leaves its spawned workers training on, to compete for the cores with
-    the next command's jobs and slow them; a worker whose parent is no longer the runner has been orphaned, so it
-    exits.
+    Pool-worker initializer: end this worker once the runner is gone (a runner killed by a signal runs no
+    ``finally`` and would leave its workers training, competing for the cores with the next command's jobs).
 
-    :param parent: the runner's pid, passed in rather than read here, since the runner may be gone before a
-        starting worker has finished its imports
-    :param poll_seconds: how often the parent is checked
+    :param parent: the runner's pid (passed in: the runner may be gone before a starting worker has imported)
     """
 
     def watch() -> None:
         while os.getppid() == parent:
-            time.sleep(poll_seconds)
+            time.sleep(1.0)
         os._exit(1)
 
-    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+    threading.Thread(target=watch, daemon=True).start()
 
 
-def job_pool(workers: int) -> concurrent.futures.ProcessPoolExecutor:
-    """
-    :param workers: worker processes
-    :return: the local pool jobs run in: one fresh spawned process per job, so that no state (threads, RNG, imports)
-        leaks from one job to the next, each ending with its runner (:func:`exit_with_parent`)
-    """
-    pool_kwargs: dict[str, Any] = {"max_tasks_per_child": 1} if sys.version_info >= (3, 11) else {}
-    return concurrent.futures.ProcessPoolExecutor(
-        max_workers=workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=exit_with_parent,
-        initargs=(os.getpid(),),
-        **pool_kwargs,
-    )
+OnResult = Callable[[Job, dict[str, Any]], None]
 
 
-def _run_local(jobs: Sequence[Job], workers: int, on_result: Callable[[Job, dict[str, Any]], None]) -> int:
-    failures = 0
+def _run_local(jobs: Sequence[Job], workers: int, on_result: OnResult) -> int:
     if workers == 0:  # in this process, one after the other (debugging, tests)
+        results = []
         for job in jobs:
             try:
-                on_result(job, run_job(job))
+                results.append((job, run_job(job)))
             except Exception:
-                failures += 1
                 print(f"FAILED {job.algo} {job.env_id} seed {job.seed}:\n{traceback.format_exc()}", file=sys.stderr)
-        return failures
-    with job_pool(workers) as pool:
+            else:
+                on_result(*results[-1])
+        return len(jobs) - len(results)
+    failures = 0
+    context = multiprocessing.get_context("spawn")  # a fresh process per job: no state leaks between jobs
+    with concurrent.futures.ProcessPoolExecutor(
+        workers, mp_context=context, initializer=exit_with_parent, initargs=(os.getpid(),), max_tasks_per_child=1
+    ) as pool:
         futures = {pool.submit(run_job, job): job for job in jobs}
         for future in concurrent.futures.as_completed(futures):
-            job = futures[future]
             try:
-                on_result(job, future.result())
+                on_result(futures[future], future.result())
             except Exception as error:
                 failures += 1
+                job = futures[future]
                 print(f"FAILED {job.algo} {job.env_id} seed {job.seed}: {error!r}", file=sys.stderr)
     return failures
 
 
-def _run_ray(jobs: Sequence[Job], address: str, workers: int, on_result: Callable[[Job, dict[str, Any]], None]) -> int:
+def _run_ray(jobs: Sequence[Job], address: str, workers: int, on_result: OnResult) -> int:
     try:
         import ray
     except ImportError as error:
         raise SystemExit(
-            "--ray-address needs Ray, which is not installed: make setup (the dev group of pyproject.toml) or "
-            "pip install 'ray>=2.9'"
+            "--ray-address needs Ray: the dev group of pyproject.toml, or pip install 'ray>=2.9'"
         ) from error
     started_here = not ray.is_initialized()
-    if started_here:
-        # Ship this checkout's code to the workers (the cluster's nodes need torch, SB3, gymnasium, ... installed).
+    if started_here:  # ship this checkout's code to the workers (the nodes need the packages installed)
         runtime_env = {"py_modules": [str(REPO_ROOT / "benchmarks"), str(REPO_ROOT / "sb3_nfq")]}
-        if address == "local":  # a Ray instance on this machine, as many CPUs as local workers
+        if address == "local":
             ray.init(num_cpus=max(workers, 1), include_dashboard=False, runtime_env=runtime_env)
-        else:  # "auto" (a running cluster this machine belongs to) or "ray://head:10001"
+        else:
             ray.init(address=address, runtime_env=runtime_env)
     failures = 0
     try:
-        remote_run_job = ray.remote(num_cpus=1, max_retries=0)(run_job)
-        pending = {remote_run_job.remote(job): job for job in jobs}
+        remote = ray.remote(num_cpus=1, max_retries=0, max_calls=1)(run_job)  # a fresh process per job
+        pending = {remote.remote(job): job for job in jobs}
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             job = pending.pop(done[0])
@@ -774,78 +634,58 @@ def _run_ray(jobs: Sequence[Job], address: str, workers: int, on_result: Callabl
     return failures
 
 
-def done_keys(results: Path, jobs: Sequence[Job], rerun: bool = False) -> set[tuple[str, str, int, int, str]]:
-    """
-    :param results: the results file
-    :param jobs: the jobs about to run
-    :param rerun: count only the records of the jobs' own command line (see :func:`run_jobs`)
-    :return: the keys of the jobs the file already holds
-    """
-    commands = {job.command for job in jobs}
-    return {result_key(record) for record in read_results(results) if not rerun or record["command"] in commands}
-
-
 def launcher(workers: int, ray_address: str | None = None) -> str:
-    """
-    :param workers: local worker processes (0: the runner's own process)
-    :param ray_address: the Ray cluster the jobs ran on, if any
-    :return: how the jobs ran, as recorded in each result line's ``launcher`` (read back by :func:`jobs_at_once`)
-    """
+    """:return: how the jobs ran, as recorded in each result line's ``launcher``"""
     if ray_address:
         return f"ray ({ray_address})"
     return f"local pool ({workers} spawned workers)" if workers else "in-process"
 
 
-def jobs_at_once(record: dict[str, Any]) -> int | None:
-    """
-    :param record: a result line
-    :return: how many jobs ran at once, this one included: its local pool's worker count, 1 in the runner's own
-        process (or for a line without a launcher on record), ``None`` on a Ray cluster (unknown)
-    """
-    name = str(record.get("launcher", launcher(0)))
-    if name.startswith("ray ("):
-        return None
-    return int(name.removeprefix("local pool (").split()[0]) if name.startswith("local pool (") else 1
+def done_keys(results: Path, jobs: Sequence[Job], rerun: bool = False) -> set[Key]:
+    """:return: the keys of ``jobs`` the file holds (with ``rerun``: only those recorded by the jobs' own command)"""
+    commands = {job.command for job in jobs}
+    return {result_key(record) for record in read_results(results) if not rerun or record["command"] in commands}
 
 
 def run_jobs(
     jobs: Sequence[Job], results: Path, workers: int, ray_address: str | None = None, rerun: bool = False
 ) -> tuple[int, int, int]:
     """
-    Run the jobs not yet in ``results``, appending one line per finished job.
+    Run the jobs not yet in ``results``, appending one line per finished job (only this process writes).
 
     :param jobs: the jobs
     :param results: the results file (JSON lines)
-    :param workers: local worker processes (0: run in this process); clamped to the number of cores
+    :param workers: local worker processes (0: run in this process); at most the number of cores
     :param ray_address: run as Ray tasks on this cluster (``local``, ``auto`` or an address) instead
-    :param rerun: run the jobs again even where the file has them, skipping only those this same command line
-        (the jobs' ``command``) has already recorded: for runs side by side with new ones
+    :param rerun: skip only the jobs this same command line has recorded: to run a baseline side by side again
     :return: (jobs run, jobs skipped as already done, jobs failed)
     """
     done = done_keys(results, jobs, rerun)
     todo = [job for job in jobs if job.key not in done]
-    skipped = len(jobs) - len(todo)
-    cores = usable_cores()
-    if workers > cores:
-        print(f"warning: {workers} workers on {cores} cores would distort timings; using {cores}", file=sys.stderr)
-        workers = cores
-    print(f"{len(jobs)} jobs: {skipped} already in {results}, {len(todo)} to run")
+    if workers > usable_cores():
+        print(f"warning: {workers} workers on {usable_cores()} cores would distort timings", file=sys.stderr)
+        workers = usable_cores()
+    print(f"{len(jobs)} jobs: {len(jobs) - len(todo)} already in {results}, {len(todo)} to run")
     finished = 0
 
     def on_result(job: Job, record: dict[str, Any]) -> None:
         nonlocal finished
         record["launcher"] = launcher(workers, ray_address)
-        append_result(results, record)
+        results.parent.mkdir(parents=True, exist_ok=True)
+        with results.open("a") as file:
+            file.write(json.dumps(record) + "\n")
         finished += 1
-        print(f"[{finished}/{len(todo)}] {_describe(record)}", flush=True)
+        solved = f"solved at {record['steps_to_solve']}" if record["solved"] else "not solved"
+        print(
+            f"[{finished}/{len(todo)}] {job.algo} {job.env_id} seed {job.seed}: {solved}, final "
+            f"{record['final_score']:.1f}, train {record['train_seconds']:.1f}s",
+            flush=True,
+        )
 
     if not todo:
-        return 0, skipped, 0
-    if ray_address:
-        failures = _run_ray(todo, ray_address, workers, on_result)
-        return finished, skipped, failures
-    failures = _run_local(todo, workers, on_result)
-    return finished, skipped, failures
+        return 0, len(jobs), 0
+    failures = _run_ray(todo, ray_address, workers, on_result) if ray_address else _run_local(todo, workers, on_result)
+    return finished, len(jobs) - len(todo), failures
 
 
 def parse_seeds(values: Iterable[str]) -> list[int]:
@@ -854,111 +694,57 @@ def parse_seeds(values: Iterable[str]) -> list[int]:
     :return: the seeds, in order, without duplicates
     """
     seeds: list[int] = []
-    for value in values:
-        for part in value.split(","):
-            if "-" in part.strip("-"):
-                low, high = part.split("-")
-                seeds.extend(range(int(low), int(high) + 1))
-            elif part:
-                seeds.append(int(part))
+    for part in (part for value in values for part in value.split(",") if part):
+        low, _, high = part.partition("-")
+        seeds.extend(range(int(low), int(high or low) + 1))
     return list(dict.fromkeys(seeds))
-
-
-def _workers(value: str) -> int:
-    workers = int(value)
-    if workers < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {workers}")
-    return workers
-
-
-def add_job_arguments(parser: argparse.ArgumentParser, default_seeds: str) -> None:
-    """
-    Add the arguments every script that runs jobs takes: ``--seeds``, ``--budget``, ``--eval-episodes``,
-    ``--workers``.
-
-    :param parser: the script's parser
-    :param default_seeds: the seeds it runs by default, e.g. ``"0-4"``
-    """
-    parser.add_argument(
-        "--seeds",
-        nargs="+",
-        default=[default_seeds],
-        help=f"seeds or ranges, e.g. 0-4 or 0 1 2 (default {default_seeds})",
-    )
-    parser.add_argument("--budget", type=int, help="env-step budget of every job (default: per config and env)")
-    parser.add_argument(
-        "--eval-episodes",
-        type=int,
-        default=configs.N_EVAL_EPISODES,
-        help="greedy episodes per evaluation (default 100, the criterion; fewer only for smoke tests)",
-    )
-    parser.add_argument(
-        "--workers",
-        type=_workers,
-        default=min(2, usable_cores()),
-        help="local worker processes, one job each (default: min(2, cores); 0: run in this process)",
-    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """
-    Command-line entry point.
-
     :param argv: arguments (default: ``sys.argv[1:]``)
     :return: exit status (1 if a job failed)
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--algos", nargs="+", default=configs.algorithm_names(), choices=configs.algorithm_names())
+    names = configs.algorithm_names()
+    parser.add_argument("--algos", nargs="+", default=names, choices=names)
     parser.add_argument("--envs", nargs="+", default=list(configs.ENVS), choices=list(configs.ENVS))
-    add_job_arguments(parser, default_seeds="0-4")
-    parser.add_argument("--eval-every", type=int, help="evaluation period in env steps (default: per env, 1024)")
+    seeds = f"{configs.SEEDS[0]}-{configs.SEEDS[-1]}"
+    parser.add_argument("--seeds", nargs="+", default=[seeds], help=f"seeds or ranges (default {seeds})")
+    parser.add_argument("--budget", type=int, help="env-step budget of every job (default: per config and env)")
+    parser.add_argument("--eval-every", type=int, help="evaluation period in env steps (default: per env)")
+    parser.add_argument("--eval-episodes", type=int, default=configs.N_EVAL_EPISODES, help="fewer: smoke tests")
     parser.add_argument("--stop-at-solve", action="store_true", help="stop each job when solved (quick runs)")
-    parser.add_argument(
-        "--protocol",
-        choices=PROTOCOLS,
-        default="rounds",
-        help="rounds: 100 greedy episodes after each round (default); book: one greedy episode after each training "
-        "episode, solved (and stopped) at the mean of the last 100 (the book's code)",
-    )
-    parser.add_argument(
-        "--results",
-        type=Path,
-        help="JSON-lines results file (default: runs.jsonl; book_protocol.jsonl with --protocol book)",
-    )
+    parser.add_argument("--protocol", choices=PROTOCOLS, default="rounds", help="book: the book's criterion")
+    parser.add_argument("--workers", type=int, default=min(2, usable_cores()), help="processes (0: this one)")
+    parser.add_argument("--results", type=Path, help="JSON-lines file (default: runs.jsonl or book_protocol.jsonl)")
     parser.add_argument("--ray-address", help="run the jobs as Ray tasks: 'local', 'auto' or a cluster address")
-    parser.add_argument(
-        "--rerun",
-        action="store_true",
-        help="run jobs again even if the results file has them (only this exact command's own are skipped): to "
-        "measure a baseline side by side with new runs",
-    )
+    parser.add_argument("--rerun", action="store_true", help="skip only the jobs this exact command has recorded")
     parser.add_argument("--dry-run", action="store_true", help="list the jobs to run and exit")
     args = parser.parse_args(argv)
-    if args.results is None:
-        args.results = DEFAULT_BOOK_RESULTS if args.protocol == "book" else DEFAULT_RESULTS
-
-    command = shlex.join(["python", "-m", "benchmarks.run", *argv])
+    if args.workers < 0:
+        parser.error(f"--workers must be >= 0, got {args.workers}")
+    results = args.results or (DEFAULT_BOOK_RESULTS if args.protocol == "book" else DEFAULT_RESULTS)
     jobs = make_jobs(
         args.algos,
         args.envs,
         parse_seeds(args.seeds),
-        budget=args.budget,
-        eval_every=args.eval_every,
-        n_eval_episodes=args.eval_episodes,
-        stop_at_solve=args.stop_at_solve,
-        command=command,
-        protocol=args.protocol,
+        args.budget,
+        args.eval_every,
+        args.eval_episodes,
+        args.stop_at_solve,
+        relative_command("benchmarks.run", argv),
+        args.protocol,
     )
     if args.dry_run:
-        done = done_keys(args.results, jobs, args.rerun)
+        done = done_keys(results, jobs, args.rerun)
         for job in jobs:
             state = "done" if job.key in done else "todo"
             print(f"{state} {job.algo} {job.env_id} seed={job.seed} budget={job.budget} config={job.config_hash}")
         return 0
     print(f"machine: {machine_line()}; torch threads per job: 1")
-    _, _, failures = run_jobs(jobs, args.results, args.workers, args.ray_address, args.rerun)
-    return 1 if failures else 0
+    return 1 if run_jobs(jobs, results, args.workers, args.ray_address, args.rerun)[2] else 0
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks.report import README, replace_block
+from benchmarks.report import publish
 from benchmarks.run import REPO_ROOT, machine_line, package_versions
 
 DEFAULT_OUT = REPO_ROOT / "benchmarks" / "results" / "main_job.json"
@@ -85,11 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     results = [run_main_job(busy, model_path) for busy in (False, True)]
     model_path.unlink(missing_ok=True)
     block = table(results)
-    payload = {"machine": machine_line(), "versions": package_versions(), "results": results}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(payload, indent=2) + "\n")
-    args.out.with_suffix(".md").write_text(block + "\n")
-    README.write_text(replace_block(README.read_text(), MARKERS, block))
+    publish(args.out, {"machine": machine_line(), "versions": package_versions(), "results": results}, block, MARKERS)
     print(block)
     return 0
 

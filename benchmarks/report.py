@@ -617,6 +617,24 @@ def replace_block(text: str, markers: tuple[str, str], block: str) -> str:
     return text[:start] + "\n" + block + "\n" + text[end:]
 
 
+def publish(out: Path, payload: Any, block: str, markers: tuple[str, str]) -> None:
+    """
+    Write a measurement's results: ``payload`` as JSON at ``out``, the markdown ``block`` beside it (``.md``), and the
+    block between ``markers`` in the top-level README when it has them.
+
+    :param out: the JSON file
+    :param payload: the results (JSON-serialisable)
+    :param block: their markdown table
+    :param markers: the README's start and end markers of the block
+    """
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(payload, indent=2) + "\n")
+    out.with_suffix(".md").write_text(block + "\n")
+    text = README.read_text()
+    if all(marker in text for marker in markers):
+        README.write_text(replace_block(text, markers, block))
+
+
 def build_report(
     records: Sequence[dict[str, Any]],
     out_dir: Path,

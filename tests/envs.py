@@ -1,4 +1,5 @@
-"""Small real gymnasium environments for the tests (image and Dict observations, broken rewards)."""
+"""Small real gymnasium environments for the tests (image and Dict observations, broken rewards, Atari-sized frames),
+and random CartPole transitions."""
 
 from typing import Any, SupportsFloat
 
@@ -138,3 +139,53 @@ class ChannelFirst(gym.ObservationWrapper):
 
     def observation(self, observation: Any) -> np.ndarray:
         return np.ascontiguousarray(np.transpose(observation, (2, 0, 1)))
+
+
+class Frames(gym.Env):
+    """
+    Episodes of random 84x84x4 uint8 frames; action 1 ends an episode after its 5th step, else it is truncated at
+    ``length`` steps. Its observations cost what Atari's stacked frames cost; there is nothing to learn.
+
+    :param length: steps before truncation
+    """
+
+    def __init__(self, length: int = 50) -> None:
+        self.observation_space = gym.spaces.Box(0, 255, shape=(84, 84, 4), dtype=np.uint8)
+        self.action_space = gym.spaces.Discrete(2)
+        self.length = length
+        self.t = 0
+
+    def _frame(self) -> np.ndarray:
+        return self.np_random.integers(0, 256, size=(84, 84, 4), dtype=np.uint8)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        self.t = 0
+        return self._frame(), {}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        self.t += 1
+        return self._frame(), float(action), int(action) == 1 and self.t > 5, self.t >= self.length, {}
+
+
+def random_cartpole_arrays(n_episodes: int, seed: int, max_episode_steps: int = 500) -> dict[str, np.ndarray]:
+    """
+    :param n_episodes: number of episodes of a uniformly random policy on CartPole-v1
+    :param seed: seed of the actions; episode ``i`` starts from ``reset(seed=seed * 100_000 + i)``
+    :param max_episode_steps: the time limit (episodes cut there are truncated, not terminated)
+    :return: the transitions in collection order, keys ``obs``, ``act``, ``rew``, ``next``, ``term``, ``trunc``,
+        with the episode ends as gymnasium reports them
+    """
+    env = gym.make("CartPole-v1", max_episode_steps=max_episode_steps)
+    rng = np.random.default_rng(seed)
+    rows: dict[str, list[Any]] = {key: [] for key in ("obs", "act", "rew", "next", "term", "trunc")}
+    for episode in range(n_episodes):
+        obs, _ = env.reset(seed=seed * 100_000 + episode)
+        done = False
+        while not done:
+            action = int(rng.integers(2))
+            next_obs, reward, terminated, truncated, _ = env.step(action)
+            for key, value in zip(rows, (obs, action, reward, next_obs, terminated, truncated), strict=True):
+                rows[key].append(value)
+            obs, done = next_obs, terminated or truncated
+    return {key: np.array(values) for key, values in rows.items()}

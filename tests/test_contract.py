@@ -18,10 +18,9 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback, StopTrainingOnMaxEpisodes
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
-from benchmarks.memory_images import Frames
 from sb3_nfq import NFQ
 from sb3_nfq.fitting import td_targets
-from tests.envs import LineWorld
+from tests.envs import Frames, LineWorld
 
 
 class StopAfterSteps(BaseCallback):

@@ -10,10 +10,10 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 
-from benchmarks.offline_random_cartpole import random_cartpole_arrays
 from sb3_nfq import NFQ, TransitionDataset
 from sb3_nfq.memory import stored_transitions
 from tests.conftest import record_fitting
+from tests.envs import random_cartpole_arrays
 
 
 def cartpole_observation_space() -> spaces.Box:
@@ -184,22 +184,3 @@ def test_not_a_replay_buffer_file_is_rejected(tmp_path: Path) -> None:
     path.write_text("garbage")
     with pytest.raises(ValueError, match="is not a replay buffer"):
         TransitionDataset.from_replay_buffer(path)
-
-
-def test_offline_study_keeps_each_optimizers_trials_apart(tmp_path: Path) -> None:
-    from benchmarks import offline_random_cartpole as study
-
-    results = tmp_path / "offline.jsonl"
-    for optimizer, learning_rate in (("Adam", 1e-3), ("Rprop", 1e-2)):
-        config = {**study.OFFLINE_CONFIG, "optimizer": optimizer, "learning_rate": learning_rate, "iterations": 1}
-        study.run([2], [0], results, workers=1, eval_episodes=1, config=config)
-    study.run([2], [0], results, workers=1, eval_episodes=1, config=config)  # done already: skipped
-    records = [line for line in results.read_text().splitlines() if line]
-    assert len(records) == 2
-
-    markdown = study.report(results)
-    assert markdown.count("| random episodes N |") == 2
-    assert "## Adam, lr 0.001, fixed_per_iteration, 1 iteration x 10 epochs" in markdown
-    assert "## Rprop, lr 0.01, fixed_per_iteration, 1 iteration x 10 epochs" in markdown
-    assert "--optimizer Rprop --learning-rate 0.01 --iterations 1" in markdown
-    assert (tmp_path / "offline_random_cartpole.png").stat().st_size > 0

@@ -10,6 +10,7 @@ when it has them (else prints it only).
 """
 
 import argparse
+import ast
 import json
 import subprocess
 import sys
@@ -44,6 +45,39 @@ def run_script(name: str, total_timesteps: int, seed: int, log_dir: Path) -> dic
     return {"script": f"examples/coming_from_dqn/{name}", **json.loads(lines[-1].removeprefix("RESULT "))}
 
 
+def script_settings(name: str) -> dict[str, str]:
+    """
+    :param name: the script's file name in ``examples/coming_from_dqn/``
+    :return: the keyword arguments its ``make_model`` gives the algorithm, as written, then the callbacks ``learn()``
+        gets (the classes its ``callbacks`` list builds)
+    """
+    tree = ast.parse((SCRIPTS / name).read_text())
+    calls = [node for node in ast.walk(tree) if isinstance(node, ast.Call)]
+    (model,) = [call for call in calls if isinstance(call.func, ast.Name) and call.func.id in ("DQN", "NFQ")]
+    settings = {str(keyword.arg): ast.unparse(keyword.value) for keyword in model.keywords}
+    (listed,) = [
+        node.value
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Assign) and ast.unparse(node.targets[0]) == "callbacks"
+    ]
+    assert isinstance(listed, ast.List)
+    settings["learn(callback=...)"] = ", ".join(ast.unparse(item.func) for item in listed.elts)  # type: ignore[attr-defined]
+    return settings
+
+
+def settings_table() -> str:
+    """:return: the markdown table of the two scripts' settings, side by side"""
+    dqn, nfq = script_settings("dqn_cartpole.py"), script_settings("nfq_cartpole.py")
+    lines = ["| setting | `dqn_cartpole.py` | `nfq_cartpole.py` |", "|---|---|---|"]
+    for name in [*dqn, *(name for name in nfq if name not in dqn)]:
+        lines.append(f"| `{name}` | {_code(dqn.get(name))} | {_code(nfq.get(name))} |")
+    return "\n".join(lines)
+
+
+def _code(value: str | None) -> str:
+    return "-" if value is None else "`" + value.replace("|", "\\|") + "`"
+
+
 def table(results: Sequence[dict[str, Any]]) -> str:
     """:return: the markdown table of the runs"""
     lines = [
@@ -71,7 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             run_script(name, args.total_timesteps, args.seed, Path(log_dir))
             for name in ("dqn_cartpole.py", "nfq_cartpole.py")
         ]
-    block = table(results)
+    block = settings_table() + "\n\n" + table(results)
     publish(args.out, {"machine": machine_line(), "versions": package_versions(), "results": results}, block, MARKERS)
     print(block)
     return 0

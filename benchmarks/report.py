@@ -630,6 +630,11 @@ def publish(out: Path, payload: Any, block: str, markers: tuple[str, str]) -> No
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(payload, indent=2) + "\n")
     out.with_suffix(".md").write_text(block + "\n")
+    write_readme_block(markers, block)
+
+
+def write_readme_block(markers: tuple[str, str], block: str) -> None:
+    """Put ``block`` between ``markers`` in the top-level README, if it has them."""
     text = README.read_text()
     if all(marker in text for marker in markers):
         README.write_text(replace_block(text, markers, block))

@@ -23,7 +23,7 @@ from sb3_nfq import NFQ, TransitionDataset
 
 DATASET_ID = "cartpole/uniform-random-v0"
 
-#: Offline settings used by this example (see benchmarks/offline_random_cartpole.py for the measured study).
+#: Offline settings used by this example (the measured study: benchmarks/results/offline_random_cartpole.md).
 OFFLINE_NFQ = {
     "gamma": 0.99,
     "target_mode": "fixed_per_iteration",

@@ -145,3 +145,11 @@ def test_coming_from_dqn_scripts_train_save_load_and_evaluate_at_the_same_budget
     assert NFQ.load(tmp_path / "nfq" / "nfq_cartpole.zip").memory == "growing"
     block = dqn_swap.table(results)
     assert "| `examples/coming_from_dqn/nfq_cartpole.py` | 2,048 | 1 |" in block
+
+
+def test_coming_from_dqn_settings_table_puts_the_two_scripts_side_by_side() -> None:
+    rows = {line.split(" | ")[0].strip("| `"): line for line in dqn_swap.settings_table().splitlines()[2:]}
+    assert rows["learning_starts"].endswith("| `1000` | - |")  # DQN only
+    assert rows["memory"].endswith("| - | `'growing'` |")  # NFQ only
+    assert rows["batch_size"].endswith("| `64` | `64` |")
+    assert "KeepBestCallback" in rows["learn(callback=...)"].split(" | ")[2]

@@ -193,6 +193,7 @@ def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     yield workdir
 
 
+@pytest.mark.slow  # the zoo in a subprocess
 def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: Path) -> None:
     run = trained_run / "logs" / ALGO_NAME / f"{ENV_ID}_1"
     files = {path.name for path in run.iterdir()}
@@ -226,6 +227,7 @@ def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: 
     assert NFQ.load(run / "best_model.zip").num_timesteps in (1024, 2048)
 
 
+@pytest.mark.slow  # the zoo in a subprocess
 def test_enjoy_runs_the_trained_agent(trained_run: Path) -> None:
     # No --algo and no -f: the launcher's defaults find the run under ./logs/nfq. More steps than CartPole's time
     # limit (500), so that an episode ends and its return is printed however well the agent balances.
@@ -234,6 +236,7 @@ def test_enjoy_runs_the_trained_agent(trained_run: Path) -> None:
     assert "Mean reward:" in output
 
 
+@pytest.mark.slow  # the zoo in a subprocess
 def test_train_gives_learn_the_callbacks_of_the_entrys_callback_key(tmp_path: Path) -> None:
     conf_file = tmp_path / "stop_after_one_episode.yml"
     conf_file.write_text(
@@ -245,6 +248,7 @@ def test_train_gives_learn_the_callbacks_of_the_entrys_callback_key(tmp_path: Pa
     assert 0 < model.num_timesteps < 500  # stopped at the end of the first episode (CartPole's limit is 500 steps)
 
 
+@pytest.mark.slow  # the zoo in a subprocess
 def test_optimize_then_train_with_a_stored_trial(tmp_path: Path) -> None:
     storage = tmp_path / "study.log"
     output = _check(
@@ -301,6 +305,7 @@ def test_optimize_then_train_with_a_stored_trial(tmp_path: Path) -> None:
     assert model.policy.net_arch == NET_ARCHS[stored["net_arch"]]
 
 
+@pytest.mark.slow  # two zoo processes
 @pytest.mark.parametrize("storage_kind", ["journal", "sqlite"])
 def test_two_processes_cooperate_on_one_study(tmp_path: Path, storage_kind: str) -> None:
     study_name = "nfq-shared"

@@ -13,7 +13,6 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import (
     GymEnv,
     MaybeCallback,
@@ -25,7 +24,7 @@ from stable_baselines3.common.type_aliases import (
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
 from sb3_nfq import rounds
-from sb3_nfq.checkpoints import check_nfq_checkpoint, drop_retired, safe_custom_objects
+from sb3_nfq.checkpoints import check_nfq_checkpoint, drop_retired, safe_custom_objects, train_freq_json
 from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
     check_loss_is_finite,
@@ -214,9 +213,7 @@ class NFQ(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
         self._convert_train_freq()
-        # Saved as plain JSON beside SB3's pickle of train_freq, for NFQ.load(safe=True).
-        assert isinstance(self.train_freq, TrainFreq)
-        self._train_freq_json = [self.train_freq.frequency, self.train_freq.unit.value]
+        self._train_freq_json = train_freq_json(self.train_freq)
         if self.replay_buffer is None:
             self.replay_buffer = make_memory(
                 self.observation_space,
@@ -548,18 +545,15 @@ class NFQ(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> SelfNFQ:
         """
-        Load an NFQ model from a zip file saved by :meth:`save`; anything else raises a ``ValueError``.
-        See :meth:`stable_baselines3.common.base_class.BaseAlgorithm.load` for the parameters.
+        Load an NFQ model from a zip saved by :meth:`save` (anything else raises a ``ValueError``); see
+        :meth:`stable_baselines3.common.base_class.BaseAlgorithm.load`.
 
-        Loading is code execution: SB3 stores what JSON cannot hold (spaces, schedules, classes in
-        ``policy_kwargs``) as cloudpickle, and a crafted checkpoint runs any code it likes when it is unpickled. Load
-        only checkpoints you trust, or use ``safe=True``, which unpickles nothing: it rebuilds every pickled entry
-        from the checkpoint's plain JSON (Discrete actions, the exploration schedule, ``train_freq``, a constant
-        ``learning_rate``, torch optimizer and activation classes in ``policy_kwargs``) and from ``env`` (the
-        observation space; without ``env``, only a small ``Box`` is rebuilt), loads the weights with
-        ``torch.load(weights_only=True)``, and refuses, naming it, an entry it cannot rebuild (a learning-rate
-        schedule, a custom features extractor class: pass those in ``custom_objects``). A safe load starts the next
-        ``learn()`` with new episodes and empty episode statistics. ``load_replay_buffer`` always unpickles its
+        SB3 stores spaces, schedules and classes as cloudpickle, which runs any code a crafted checkpoint holds: load
+        only checkpoints you trust, or use ``safe=True``. A safe load unpickles nothing: it rebuilds each pickled entry
+        from the checkpoint's plain JSON and from ``env`` (without ``env``, only a small ``Box`` observation space),
+        loads the weights with ``torch.load(weights_only=True)``, refuses, naming it, an entry it cannot rebuild (a
+        learning-rate schedule, a custom features extractor class: pass those in ``custom_objects``), and starts the
+        next ``learn()`` with new episodes and empty episode statistics. ``load_replay_buffer`` always unpickles its
         file: load only replay buffers you trust.
 
         :param path: path to the file (or a file-like) where to load the agent from
@@ -573,8 +567,7 @@ class NFQ(OffPolicyAlgorithm):
         :return: new model instance with loaded parameters
         """
         if safe:
-            if env is not None:  # wrapped as SB3's load wraps it (VecTransposeImage too), to read its spaces
-                env = cls._wrap_env(env)
+            env = None if env is None else cls._wrap_env(env)  # as SB3's load wraps it, to read its spaces
             custom_objects = safe_custom_objects(path, env, custom_objects, cls.policy_aliases)
         check_nfq_checkpoint(path, custom_objects)
         return super().load(
@@ -602,10 +595,7 @@ class NFQ(OffPolicyAlgorithm):
         :param exact_match: whether the parameters must cover every network and each of its parameters
         :param device: Device on which the code should run.
         """
-        if not isinstance(load_path_or_dict, dict):
-            _, load_path_or_dict, _ = load_from_zip_file(load_path_or_dict, device=device, load_data=False)
-        # In load(), SB3 has already put the zip's data on the model, so its retired attributes are dropped here too.
-        super().set_parameters(drop_retired(vars(self), load_path_or_dict), exact_match, device)
+        super().set_parameters(drop_retired(vars(self), load_path_or_dict, device), exact_match, device)
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "q_net"]

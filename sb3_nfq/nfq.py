@@ -2,9 +2,7 @@
 
 import io
 import math
-import numbers
 import pathlib
-import warnings
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -46,6 +44,7 @@ from sb3_nfq.parameters import (
     check_action_space,
     check_full_batch_optimizer,
     check_hyperparameters,
+    check_total_timesteps,
     is_positive_int,
     loss_function,
     reject_unknown_parameters,
@@ -53,10 +52,6 @@ from sb3_nfq.parameters import (
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
 
 SelfNFQ = TypeVar("SelfNFQ", bound="NFQ")
-
-
-#: ``learn()``'s default budget: the textbook's CartPole-v1 budget, in env steps.
-DEFAULT_TOTAL_TIMESTEPS = 300_000
 
 
 class NFQ(OffPolicyAlgorithm):
@@ -265,23 +260,7 @@ class NFQ(OffPolicyAlgorithm):
         :param progress_bar: Display a progress bar using tqdm and rich.
         :return: the trained model
         """
-        if total_timesteps is None:
-            warnings.warn(
-                f"learn() was called without total_timesteps: NFQ trains for its default budget of "
-                f"{DEFAULT_TOTAL_TIMESTEPS:,} env steps (the textbook's CartPole-v1 budget), which takes minutes. "
-                "Pass progress_bar=True (or verbose=1) to watch the progress, or total_timesteps to choose the budget.",
-                UserWarning,
-                stacklevel=2,
-            )
-            total_timesteps = DEFAULT_TOTAL_TIMESTEPS
-        if (
-            isinstance(total_timesteps, bool)
-            or not isinstance(total_timesteps, numbers.Real)
-            or not total_timesteps > 0
-        ):
-            raise ValueError(
-                f"total_timesteps (env steps to train for) must be a positive number, got {total_timesteps!r}"
-            )
+        total_timesteps = check_total_timesteps(total_timesteps)
         total_timesteps, callback = self._setup_learn(
             total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
         )
@@ -289,7 +268,8 @@ class NFQ(OffPolicyAlgorithm):
         assert self.env is not None
         self._q_bound_warned = False
 
-        self._restart_round_missing_from_memory()
+        if rounds.missing_from_memory(self._round_steps, self.replay_buffer, self._n_rounds + 1):
+            self._round_steps = self._round_episodes = self._round_target = 0
         length = rounds.round_length(self.train_freq, self.n_envs)
         by_episode = length.unit == TrainFrequencyUnit.EPISODE
         while True:
@@ -322,24 +302,6 @@ class NFQ(OffPolicyAlgorithm):
 
         callback.on_training_end()
         return self
-
-    def _restart_round_missing_from_memory(self) -> None:
-        """
-        A model saved partway through a round and loaded without its replay buffer counts a partly collected round
-        that its memory does not hold: fitting it would fit a short round of the transitions still to come. Start
-        that round over instead, with a warning.
-        """
-        if self._round_steps <= self.replay_buffer.size():
-            return
-        warnings.warn(
-            f"This model was saved {self._round_steps} env.step() calls into round {self._n_rounds + 1}, but its "
-            f"memory holds {self.replay_buffer.size()}: it was loaded without its replay buffer. The round starts "
-            "over as a whole round; to go on with the collected transitions instead, call "
-            "model.load_replay_buffer(path) (of a buffer saved with save_replay_buffer) before learn().",
-            UserWarning,
-            stacklevel=3,
-        )
-        self._round_steps = self._round_episodes = self._round_target = 0
 
     def _round_size(self, length: TrainFreq) -> int:
         """:return: the current round's length, in episodes or ``env.step()`` calls (fixed when it starts)"""

@@ -353,48 +353,39 @@ class NFQ(OffPolicyAlgorithm):
         """
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
-        n_transitions = len(batch.rewards)
         self._n_rounds += 1
-        shared_states = shared_successor_states(self.q_net, batch, n_envs, batch_size)
+        n_transitions, device = len(batch.rewards), batch.rewards.device
         loss_fn = loss_function(self.loss, self.huber_delta)
+        shared_states = shared_successor_states(self.q_net, batch, n_envs, batch_size)
 
         losses = []
         for iteration in range(gradient_steps):
             # Classic fitted Q-iteration regresses on targets fixed for the iteration; the textbook recomputes them.
             fixed = td_targets(self.q_net, batch, self.gamma) if self.target_mode == "fixed_per_iteration" else None
-            q_abs_max = th.zeros((), device=batch.rewards.device)  # over the last iteration: its steps cover the batch
+            q_abs_max = th.zeros((), device=device)  # over the last iteration: its steps cover the batch
             for _ in range(self.fit_epochs):
-                for indices in minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
-                    data = take(batch, indices)
+                for indices in minibatch_indices(n_transitions, batch_size, device):
                     known = fixed if fixed is None or indices is None else fixed[indices]
+                    # Targets, the loss and its gradient; the step only if the loss is finite.
                     self.policy.optimizer.zero_grad()
                     loss_value, q_values, targets = loss_and_gradient(
-                        self.q_net, loss_fn, self.gamma, data, known, shared_states
+                        self.q_net, loss_fn, self.gamma, take(batch, indices), known, shared_states
                     )
                     check_loss_is_finite(loss_value, self._n_rounds, iteration + 1, gradient_steps, self.num_timesteps)
-                    losses.append(loss_value)
-                    q_abs_max = th.maximum(q_abs_max, q_values.detach().abs().max())
                     if self.max_grad_norm is not None:
                         th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
                     self.policy.optimizer.step()
                     self._n_updates += 1
+                    losses.append(loss_value)
+                    q_abs_max = th.maximum(q_abs_max, q_values.detach().abs().max())
 
+        exceeded = check_q_values_bounded(self, q_abs_max.item(), batch.rewards)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/n_rounds", self._n_rounds, exclude="tensorboard")
         self.logger.record("train/batch_transitions", n_transitions)
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
-        self._max_abs_reward = max(self._max_abs_reward, batch.rewards.abs().max().item())
-        exceeded = check_q_values_bounded(
-            q_abs_max.item(),
-            self._max_abs_reward,
-            self.gamma,
-            self._n_rounds,
-            self.num_timesteps,
-            not self._q_bound_warned,
-        )
-        self._q_bound_warned |= exceeded
         self.logger.record("train/q_abs_max", q_abs_max.item())
         if self.gamma < 1:
             self.logger.record("train/q_bound_exceeded", int(exceeded))

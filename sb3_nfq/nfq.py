@@ -65,36 +65,27 @@ class NFQ(OffPolicyAlgorithm):
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, or a policy class)
     :param env: The environment to learn from (if registered in Gymnasium, can be str), with ``Discrete`` actions;
         ``None`` with :meth:`for_dataset`
-    :param learning_rate: The learning rate, or a function of the progress remaining (from 1 to 0); Rprop's
-        initial step size
-    :param train_freq: Transitions collected per round (the book's E), over all envs (a round takes
-        ``ceil(train_freq / n_envs)`` steps in each), or ``(n, "episode")``: ``n`` whole episodes (one env only)
+    :param learning_rate: The learning rate (Rprop's initial step size), or a function of the progress remaining
+    :param train_freq: Transitions per round (the book's E) over all envs, rounded up to a multiple of ``n_envs``, or
+        ``(n, "episode")``: ``n`` whole episodes (one env only)
     :param gradient_steps: Fitted iterations per round (the book's K), each covering the whole memory once
     :param batch_size: ``None`` (textbook): one full-batch gradient step per epoch; an integer: shuffled mini-batches
-        of this size that cover every transition once (a last mini-batch of one row joins the one before it, so
-        that a BatchNorm layer never sees a mini-batch of one)
-    :param buffer_size: Most transitions the memory holds; ``None``: one round (fresh memory; needed when rounds
-        count episodes), 1,000,000 (growing). A fresh memory of rounds counted in steps always holds one round:
-        ``buffer_size`` is refused there
-    :param memory: ``"fresh"`` (textbook): fit the round's transitions, then discard them; ``"growing"`` (2005
+        that cover every transition once (a last mini-batch of one row joins the one before it)
+    :param buffer_size: Most transitions the memory holds; ``None``: one round (fresh), 1,000,000 (growing); refused
+        for a fresh memory of rounds counted in steps, which always holds one round
+    :param memory: ``"fresh"`` (textbook): fit each round's transitions, then discard them; ``"growing"`` (2005
         paper): keep every transition (the oldest go past ``buffer_size``) and fit the whole memory every round
-    :param round_fraction: With ``memory="growing"``, ``f``: a round collects ``max(train_freq, f * M)``
-        transitions, ``M`` being what the memory holds when it starts, so the fit per transition collected stays
-        about ``gradient_steps / f`` and the total cost grows linearly with the steps; ``None``: ``train_freq``
-    :param round_fraction_offset: With ``round_fraction``, transitions of the memory it does not count: a round
-        collects ``max(train_freq, f * (M - offset))``, so rounds stay ``train_freq`` long until the memory holds
-        ``offset + train_freq / f`` transitions (frequent, cheap refits of a small memory), then lengthen; the fit
-        per transition collected tends to ``gradient_steps / f`` as the memory grows past the offset. 0: all of it
+    :param round_fraction: With ``memory="growing"``, ``f``: a round collects ``max(train_freq, f * M)`` transitions,
+        ``M`` being what the memory holds as it starts (the fit cost per env step stays bounded); ``None``: ``E``
+    :param round_fraction_offset: With ``round_fraction``, transitions of the memory that ``M`` does not count
     :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
         ``"fixed_per_iteration"`` (fitted Q-iteration): once per iteration, then ``fit_epochs`` epochs on them
     :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
-    :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
-        larger errors pull on the fit no harder than this one (1.0: SB3 DQN's ``smooth_l1_loss``); a positive number
-    :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from
-        ``exploration_initial_eps`` to ``exploration_final_eps``, in (0, 1]; a value other than the default is
-        refused when the two are equal (it would have no effect)
+    :param huber_delta: With ``loss="huber"``, the TD error where the loss turns linear (1.0: SB3 DQN's loss)
+    :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from its initial
+        to its final value, in (0, 1]; refused, unless the default, when the two are equal
     :param exploration_initial_eps: Initial probability of a random action while collecting
     :param exploration_final_eps: Final probability of a random action while collecting
     :param max_grad_norm: Clip the gradient norm to this value; ``None`` (textbook): no clipping
@@ -109,9 +100,8 @@ class NFQ(OffPolicyAlgorithm):
     :param device: Device (cpu, cuda, ...) on which the code should be run.
         Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
-    :param kwargs: nothing else is accepted: DQN's ``learning_starts``, ``target_update_interval``, ``tau``, ... and
-        the parameters NFQ no longer has (``double_q``, ``round_step_size``, ``keep_best``) raise a ``TypeError``
-        saying what NFQ does instead
+    :param kwargs: Nothing: DQN's other parameters and those NFQ no longer has raise a ``TypeError`` saying what
+        NFQ does instead
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -228,9 +218,7 @@ class NFQ(OffPolicyAlgorithm):
             self.policy.optimizer, self.batch_size, fit_size, f"a round's fit (memory={self.memory!r})"
         )
         self.exploration_schedule = LinearSchedule(
-            self.exploration_initial_eps,
-            self.exploration_final_eps,
-            self.exploration_fraction,
+            self.exploration_initial_eps, self.exploration_final_eps, self.exploration_fraction
         )
 
     def learn(
@@ -249,10 +237,8 @@ class NFQ(OffPolicyAlgorithm):
         fits it, and ``save_replay_buffer`` saves it. With ``train_freq`` counted in episodes, training runs in
         whole rounds and may go past ``total_timesteps``.
 
-        :param total_timesteps: The total number of environment steps to train on; ``None`` (NFQ's default, which
-            DQN does not have): 300,000, the textbook's CartPole-v1 budget, with a ``UserWarning`` saying so and how
-            to watch the progress (``progress_bar=True`` or ``verbose=1``), since at ``verbose=0`` nothing is
-            printed for the minutes it takes
+        :param total_timesteps: The total number of environment steps to train on; ``None`` (DQN has no default):
+            300,000, the textbook's CartPole-v1 budget, with a ``UserWarning`` saying how to watch the progress
         :param callback: callback(s) called at every step with state of the algorithm.
         :param log_interval: Log data every ``log_interval`` episodes
         :param tb_log_name: the name of the run for TensorBoard logging
@@ -290,11 +276,7 @@ class NFQ(OffPolicyAlgorithm):
                 steps_left = math.ceil((total_timesteps - self.num_timesteps) / self.n_envs)
                 to_collect = min(self._round_size(length) - self._round_steps, steps_left)
             rollout = self.collect_rollouts(
-                self.env,
-                callback=callback,
-                train_freq=TrainFreq(to_collect, length.unit),
-                replay_buffer=self.replay_buffer,
-                log_interval=log_interval,
+                self.env, callback, TrainFreq(to_collect, length.unit), self.replay_buffer, log_interval=log_interval
             )
             if not rollout.continue_training:
                 rounds.store_interrupted_step(self, callback)
@@ -523,15 +505,7 @@ class NFQ(OffPolicyAlgorithm):
             env = None if env is None else cls._wrap_env(env)  # as SB3's load wraps it, to read its spaces
             custom_objects = safe_custom_objects(path, env, custom_objects, cls.policy_aliases)
         check_nfq_checkpoint(path, custom_objects)
-        return super().load(
-            path,
-            env=env,
-            device=device,
-            custom_objects=custom_objects,
-            print_system_info=print_system_info,
-            force_reset=force_reset,
-            **kwargs,
-        )
+        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
 
     def set_parameters(
         self,

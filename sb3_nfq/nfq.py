@@ -328,6 +328,8 @@ class NFQ(OffPolicyAlgorithm):
 
     def _fit(self, batch: ReplayBufferSamples, n_envs: int, gradient_steps: int, batch_size: int | None) -> None:
         """
+        Fit the Q-network on ``batch`` (a round's memory, or a dataset) by ``gradient_steps`` fitted iterations.
+
         :param batch: the transitions to fit on, one row per transition (step-major, then env)
         :param n_envs: how many envs the rows interleave (a transition's next state is ``n_envs`` rows on)
         :param gradient_steps: Number of fitted iterations
@@ -394,10 +396,8 @@ class NFQ(OffPolicyAlgorithm):
 
     def fit_offline(self: SelfNFQ, dataset: TransitionDataset, iterations: int | None = None) -> SelfNFQ:
         """
-        Fit on a fixed dataset, without touching an environment: ``iterations`` fitted iterations
-        (default ``gradient_steps``), each covering every transition of the dataset as configured
-        (``batch_size``, ``target_mode``, ``fit_epochs``). The online memory is left as it was, so the model
-        can go on with :meth:`learn`. Logs ``train/*`` once at the end.
+        Fit on a fixed dataset, without an environment, as :meth:`train` fits a round (``batch_size``,
+        ``target_mode``, ``fit_epochs``); the online memory is left as it was. Logs ``train/*`` once at the end.
 
         :param dataset: the transitions to fit on; their spaces must match the model's
         :param iterations: number of fitted iterations (default: ``self.gradient_steps``)

@@ -45,16 +45,35 @@ def check_nfq_checkpoint(path: str | pathlib.Path | io.BufferedIOBase, custom_ob
         raise ValueError(f"{path} is not an NFQ checkpoint: it holds a {found} policy, not an NFQ policy")
 
 
-def drop_retired(attributes: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
+def train_freq_json(train_freq: TrainFreq | Any) -> list[int | str]:
+    """
+    :param train_freq: NFQ's ``train_freq`` once the model has set up
+    :return: it as plain JSON, saved beside SB3's pickle of it, for ``NFQ.load(safe=True)``
+    """
+    assert isinstance(train_freq, TrainFreq)
+    return [train_freq.frequency, train_freq.unit.value]
+
+
+def drop_retired(
+    attributes: dict[str, Any],
+    load_path_or_dict: str | pathlib.Path | io.BufferedIOBase | dict[str, Any],
+    device: th.device | str,
+) -> dict[str, Any]:
     """
     Drop what a model saved by an earlier version holds for the parameters NFQ no longer has
     (:data:`~sb3_nfq.parameters.RETIRED_PARAMETERS`), with a ``UserWarning`` naming what was dropped where it changes
-    what the model does (a value other than the one that did what NFQ does now, or a network).
+    what the model does (a value other than the one that did what NFQ does now, or a network). In ``NFQ.load``, SB3
+    has already put the zip's data on the model, so its retired attributes are dropped too.
 
     :param attributes: the model's attributes, the zip's data among them (changed in place)
-    :param params: the zip's networks and optimizer states
-    :return: ``params`` without the retired networks
+    :param load_path_or_dict: the zip (or a file-like), or its networks and optimizer states
+    :param device: where to load the zip's tensors
+    :return: the networks and optimizer states without the retired networks
     """
+    if isinstance(load_path_or_dict, dict):
+        params = load_path_or_dict
+    else:
+        _, params, _ = load_from_zip_file(load_path_or_dict, device=device, load_data=False)
     dropped = []
     for name, retired in RETIRED_PARAMETERS.items():
         value = attributes.pop(name, retired.default)

@@ -7,12 +7,15 @@ import contextlib
 import math
 import warnings
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch as th
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_nfq.memory import rows_per_chunk
+
+if TYPE_CHECKING:
+    from sb3_nfq.nfq import NFQ
 
 
 class NFQDivergenceError(FloatingPointError, ValueError):
@@ -61,35 +64,35 @@ def q_value_bound(max_abs_reward: float, gamma: float) -> float | None:
     return None if gamma >= 1 else max_abs_reward / (1 - gamma)
 
 
-def check_q_values_bounded(
-    q_abs_max: float, max_abs_reward: float, gamma: float, round_number: int, timesteps: int, warn: bool
-) -> bool:
+def check_q_values_bounded(model: "NFQ", q_abs_max: float, rewards: th.Tensor) -> bool:
     """
     Divergence before it reaches NaN: with ``gamma < 1``, no return exceeds ``max |r| / (1 - gamma)``, so fitted
     Q-values far above it (:data:`Q_BOUND_MARGIN` times it; for rewards near 0, :data:`Q_BOUND_MARGIN` times 1, the
     scale of a network's first outputs) are bootstrapping on their own errors, which a loss that stays finite does
-    not show. With ``gamma = 1`` there is no such bound and nothing is checked.
+    not show. With ``gamma = 1`` there is no such bound and nothing is checked. Warns (``UserWarning``) once per
+    ``learn()``: the model's ``_max_abs_reward`` and ``_q_bound_warned`` keep what this has seen.
 
+    :param model: the model whose round (or dataset) was just fitted
     :param q_abs_max: the largest ``|Q(s, a)|`` of the fitted batch
-    :param max_abs_reward: the largest ``|r|`` seen so far
-    :param gamma: the discount factor
-    :param round_number: the round just fitted (from 1)
-    :param timesteps: env steps taken so far
-    :param warn: whether to warn (``UserWarning``) if the bound is exceeded
+    :param rewards: the fitted batch's rewards
     :return: whether the bound is exceeded
     """
+    model._max_abs_reward = max(model._max_abs_reward, rewards.abs().max().item())
+    max_abs_reward, gamma = model._max_abs_reward, model.gamma
     bound = q_value_bound(max_abs_reward, gamma)
     if bound is None or q_abs_max <= Q_BOUND_MARGIN * max(bound, 1.0):
         return False
-    if warn:
+    if not model._q_bound_warned:
         warnings.warn(
-            f"NFQ's Q-values look divergent: after round {round_number} ({timesteps} env steps) the largest "
-            f"|Q(s, a)| of the fitted batch is {q_abs_max:.4g}, but rewards of at most {max_abs_reward:.4g} in size "
-            f"with gamma={gamma} bound every value by {bound:.4g} (warned above {Q_BOUND_MARGIN:g} times that). "
-            "Lower learning_rate, use loss='huber' or set max_grad_norm; train/q_bound_exceeded logs each round.",
+            f"NFQ's Q-values look divergent: after round {model._n_rounds} ({model.num_timesteps} env steps) the "
+            f"largest |Q(s, a)| of the fitted batch is {q_abs_max:.4g}, but rewards of at most {max_abs_reward:.4g} "
+            f"in size with gamma={gamma} bound every value by {bound:.4g} (warned above {Q_BOUND_MARGIN:g} times "
+            "that). Lower learning_rate, use loss='huber' or set max_grad_norm; train/q_bound_exceeded logs each "
+            "round.",
             UserWarning,
             stacklevel=2,
         )
+        model._q_bound_warned = True
     return True
 
 

@@ -2,9 +2,7 @@
 
 import io
 import math
-import numbers
 import pathlib
-import warnings
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -13,7 +11,6 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import (
     GymEnv,
     MaybeCallback,
@@ -25,7 +22,7 @@ from stable_baselines3.common.type_aliases import (
 from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
 from sb3_nfq import rounds
-from sb3_nfq.checkpoints import check_nfq_checkpoint, drop_retired, safe_custom_objects
+from sb3_nfq.checkpoints import check_nfq_checkpoint, drop_retired, safe_custom_objects, train_freq_json
 from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
 from sb3_nfq.fitting import (
     check_loss_is_finite,
@@ -47,6 +44,7 @@ from sb3_nfq.parameters import (
     check_action_space,
     check_full_batch_optimizer,
     check_hyperparameters,
+    check_total_timesteps,
     is_positive_int,
     loss_function,
     reject_unknown_parameters,
@@ -54,10 +52,6 @@ from sb3_nfq.parameters import (
 from sb3_nfq.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, NFQPolicy, QNetwork
 
 SelfNFQ = TypeVar("SelfNFQ", bound="NFQ")
-
-
-#: ``learn()``'s default budget: the textbook's CartPole-v1 budget, in env steps.
-DEFAULT_TOTAL_TIMESTEPS = 300_000
 
 
 class NFQ(OffPolicyAlgorithm):
@@ -71,36 +65,27 @@ class NFQ(OffPolicyAlgorithm):
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy, or a policy class)
     :param env: The environment to learn from (if registered in Gymnasium, can be str), with ``Discrete`` actions;
         ``None`` with :meth:`for_dataset`
-    :param learning_rate: The learning rate, or a function of the progress remaining (from 1 to 0); Rprop's
-        initial step size
-    :param train_freq: Transitions collected per round (the book's E), over all envs (a round takes
-        ``ceil(train_freq / n_envs)`` steps in each), or ``(n, "episode")``: ``n`` whole episodes (one env only)
+    :param learning_rate: The learning rate (Rprop's initial step size), or a function of the progress remaining
+    :param train_freq: Transitions per round (the book's E) over all envs, rounded up to a multiple of ``n_envs``, or
+        ``(n, "episode")``: ``n`` whole episodes (one env only)
     :param gradient_steps: Fitted iterations per round (the book's K), each covering the whole memory once
     :param batch_size: ``None`` (textbook): one full-batch gradient step per epoch; an integer: shuffled mini-batches
-        of this size that cover every transition once (a last mini-batch of one row joins the one before it, so
-        that a BatchNorm layer never sees a mini-batch of one)
-    :param buffer_size: Most transitions the memory holds; ``None``: one round (fresh memory; needed when rounds
-        count episodes), 1,000,000 (growing). A fresh memory of rounds counted in steps always holds one round:
-        ``buffer_size`` is refused there
-    :param memory: ``"fresh"`` (textbook): fit the round's transitions, then discard them; ``"growing"`` (2005
+        that cover every transition once (a last mini-batch of one row joins the one before it)
+    :param buffer_size: Most transitions the memory holds; ``None``: one round (fresh), 1,000,000 (growing); refused
+        for a fresh memory of rounds counted in steps, which always holds one round
+    :param memory: ``"fresh"`` (textbook): fit each round's transitions, then discard them; ``"growing"`` (2005
         paper): keep every transition (the oldest go past ``buffer_size``) and fit the whole memory every round
-    :param round_fraction: With ``memory="growing"``, ``f``: a round collects ``max(train_freq, f * M)``
-        transitions, ``M`` being what the memory holds when it starts, so the fit per transition collected stays
-        about ``gradient_steps / f`` and the total cost grows linearly with the steps; ``None``: ``train_freq``
-    :param round_fraction_offset: With ``round_fraction``, transitions of the memory it does not count: a round
-        collects ``max(train_freq, f * (M - offset))``, so rounds stay ``train_freq`` long until the memory holds
-        ``offset + train_freq / f`` transitions (frequent, cheap refits of a small memory), then lengthen; the fit
-        per transition collected tends to ``gradient_steps / f`` as the memory grows past the offset. 0: all of it
+    :param round_fraction: With ``memory="growing"``, ``f``: a round collects ``max(train_freq, f * M)`` transitions,
+        ``M`` being what the memory holds as it starts (the fit cost per env step stays bounded); ``None``: ``E``
+    :param round_fraction_offset: With ``round_fraction``, transitions of the memory that ``M`` does not count
     :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
         ``"fixed_per_iteration"`` (fitted Q-iteration): once per iteration, then ``fit_epochs`` epochs on them
     :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
-    :param huber_delta: With ``loss="huber"``, the TD error at which the loss turns from squared to linear, so that
-        larger errors pull on the fit no harder than this one (1.0: SB3 DQN's ``smooth_l1_loss``); a positive number
-    :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from
-        ``exploration_initial_eps`` to ``exploration_final_eps``, in (0, 1]; a value other than the default is
-        refused when the two are equal (it would have no effect)
+    :param huber_delta: With ``loss="huber"``, the TD error where the loss turns linear (1.0: SB3 DQN's loss)
+    :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from its initial
+        to its final value, in (0, 1]; refused, unless the default, when the two are equal
     :param exploration_initial_eps: Initial probability of a random action while collecting
     :param exploration_final_eps: Final probability of a random action while collecting
     :param max_grad_norm: Clip the gradient norm to this value; ``None`` (textbook): no clipping
@@ -115,9 +100,8 @@ class NFQ(OffPolicyAlgorithm):
     :param device: Device (cpu, cuda, ...) on which the code should be run.
         Setting it to auto, the code will be run on the GPU if possible.
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
-    :param kwargs: nothing else is accepted: DQN's ``learning_starts``, ``target_update_interval``, ``tau``, ... and
-        the parameters NFQ no longer has (``double_q``, ``round_step_size``, ``keep_best``) raise a ``TypeError``
-        saying what NFQ does instead
+    :param kwargs: Nothing: DQN's other parameters and those NFQ no longer has raise a ``TypeError`` saying what
+        NFQ does instead
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -214,9 +198,7 @@ class NFQ(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         check_action_space(self.action_space)
         self._convert_train_freq()
-        # Saved as plain JSON beside SB3's pickle of train_freq, for NFQ.load(safe=True).
-        assert isinstance(self.train_freq, TrainFreq)
-        self._train_freq_json = [self.train_freq.frequency, self.train_freq.unit.value]
+        self._train_freq_json = train_freq_json(self.train_freq)
         if self.replay_buffer is None:
             self.replay_buffer = make_memory(
                 self.observation_space,
@@ -236,9 +218,7 @@ class NFQ(OffPolicyAlgorithm):
             self.policy.optimizer, self.batch_size, fit_size, f"a round's fit (memory={self.memory!r})"
         )
         self.exploration_schedule = LinearSchedule(
-            self.exploration_initial_eps,
-            self.exploration_final_eps,
-            self.exploration_fraction,
+            self.exploration_initial_eps, self.exploration_final_eps, self.exploration_fraction
         )
 
     def learn(
@@ -257,10 +237,8 @@ class NFQ(OffPolicyAlgorithm):
         fits it, and ``save_replay_buffer`` saves it. With ``train_freq`` counted in episodes, training runs in
         whole rounds and may go past ``total_timesteps``.
 
-        :param total_timesteps: The total number of environment steps to train on; ``None`` (NFQ's default, which
-            DQN does not have): 300,000, the textbook's CartPole-v1 budget, with a ``UserWarning`` saying so and how
-            to watch the progress (``progress_bar=True`` or ``verbose=1``), since at ``verbose=0`` nothing is
-            printed for the minutes it takes
+        :param total_timesteps: The total number of environment steps to train on; ``None`` (DQN has no default):
+            300,000, the textbook's CartPole-v1 budget, with a ``UserWarning`` saying how to watch the progress
         :param callback: callback(s) called at every step with state of the algorithm.
         :param log_interval: Log data every ``log_interval`` episodes
         :param tb_log_name: the name of the run for TensorBoard logging
@@ -268,23 +246,7 @@ class NFQ(OffPolicyAlgorithm):
         :param progress_bar: Display a progress bar using tqdm and rich.
         :return: the trained model
         """
-        if total_timesteps is None:
-            warnings.warn(
-                f"learn() was called without total_timesteps: NFQ trains for its default budget of "
-                f"{DEFAULT_TOTAL_TIMESTEPS:,} env steps (the textbook's CartPole-v1 budget), which takes minutes. "
-                "Pass progress_bar=True (or verbose=1) to watch the progress, or total_timesteps to choose the budget.",
-                UserWarning,
-                stacklevel=2,
-            )
-            total_timesteps = DEFAULT_TOTAL_TIMESTEPS
-        if (
-            isinstance(total_timesteps, bool)
-            or not isinstance(total_timesteps, numbers.Real)
-            or not total_timesteps > 0
-        ):
-            raise ValueError(
-                f"total_timesteps (env steps to train for) must be a positive number, got {total_timesteps!r}"
-            )
+        total_timesteps = check_total_timesteps(total_timesteps)
         total_timesteps, callback = self._setup_learn(
             total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
         )
@@ -292,7 +254,8 @@ class NFQ(OffPolicyAlgorithm):
         assert self.env is not None
         self._q_bound_warned = False
 
-        self._restart_round_missing_from_memory()
+        if rounds.missing_from_memory(self._round_steps, self.replay_buffer, self._n_rounds + 1):
+            self._round_steps = self._round_episodes = self._round_target = 0
         length = rounds.round_length(self.train_freq, self.n_envs)
         by_episode = length.unit == TrainFrequencyUnit.EPISODE
         while True:
@@ -313,11 +276,7 @@ class NFQ(OffPolicyAlgorithm):
                 steps_left = math.ceil((total_timesteps - self.num_timesteps) / self.n_envs)
                 to_collect = min(self._round_size(length) - self._round_steps, steps_left)
             rollout = self.collect_rollouts(
-                self.env,
-                callback=callback,
-                train_freq=TrainFreq(to_collect, length.unit),
-                replay_buffer=self.replay_buffer,
-                log_interval=log_interval,
+                self.env, callback, TrainFreq(to_collect, length.unit), self.replay_buffer, log_interval=log_interval
             )
             if not rollout.continue_training:
                 rounds.store_interrupted_step(self, callback)
@@ -325,24 +284,6 @@ class NFQ(OffPolicyAlgorithm):
 
         callback.on_training_end()
         return self
-
-    def _restart_round_missing_from_memory(self) -> None:
-        """
-        A model saved partway through a round and loaded without its replay buffer counts a partly collected round
-        that its memory does not hold: fitting it would fit a short round of the transitions still to come. Start
-        that round over instead, with a warning.
-        """
-        if self._round_steps <= self.replay_buffer.size():
-            return
-        warnings.warn(
-            f"This model was saved {self._round_steps} env.step() calls into round {self._n_rounds + 1}, but its "
-            f"memory holds {self.replay_buffer.size()}: it was loaded without its replay buffer. The round starts "
-            "over as a whole round; to go on with the collected transitions instead, call "
-            "model.load_replay_buffer(path) (of a buffer saved with save_replay_buffer) before learn().",
-            UserWarning,
-            stacklevel=3,
-        )
-        self._round_steps = self._round_episodes = self._round_target = 0
 
     def _round_size(self, length: TrainFreq) -> int:
         """:return: the current round's length, in episodes or ``env.step()`` calls (fixed when it starts)"""
@@ -387,6 +328,8 @@ class NFQ(OffPolicyAlgorithm):
 
     def _fit(self, batch: ReplayBufferSamples, n_envs: int, gradient_steps: int, batch_size: int | None) -> None:
         """
+        Fit the Q-network on ``batch`` (a round's memory, or a dataset) by ``gradient_steps`` fitted iterations.
+
         :param batch: the transitions to fit on, one row per transition (step-major, then env)
         :param n_envs: how many envs the rows interleave (a transition's next state is ``n_envs`` rows on)
         :param gradient_steps: Number of fitted iterations
@@ -394,48 +337,39 @@ class NFQ(OffPolicyAlgorithm):
         """
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
-        n_transitions = len(batch.rewards)
         self._n_rounds += 1
-        shared_states = shared_successor_states(self.q_net, batch, n_envs, batch_size)
+        n_transitions, device = len(batch.rewards), batch.rewards.device
         loss_fn = loss_function(self.loss, self.huber_delta)
+        shared_states = shared_successor_states(self.q_net, batch, n_envs, batch_size)
 
         losses = []
         for iteration in range(gradient_steps):
             # Classic fitted Q-iteration regresses on targets fixed for the iteration; the textbook recomputes them.
             fixed = td_targets(self.q_net, batch, self.gamma) if self.target_mode == "fixed_per_iteration" else None
-            q_abs_max = th.zeros((), device=batch.rewards.device)  # over the last iteration: its steps cover the batch
+            q_abs_max = th.zeros((), device=device)  # over the last iteration: its steps cover the batch
             for _ in range(self.fit_epochs):
-                for indices in minibatch_indices(n_transitions, batch_size, device=batch.rewards.device):
-                    data = take(batch, indices)
+                for indices in minibatch_indices(n_transitions, batch_size, device):
                     known = fixed if fixed is None or indices is None else fixed[indices]
+                    # Targets, the loss and its gradient; the step only if the loss is finite.
                     self.policy.optimizer.zero_grad()
                     loss_value, q_values, targets = loss_and_gradient(
-                        self.q_net, loss_fn, self.gamma, data, known, shared_states
+                        self.q_net, loss_fn, self.gamma, take(batch, indices), known, shared_states
                     )
                     check_loss_is_finite(loss_value, self._n_rounds, iteration + 1, gradient_steps, self.num_timesteps)
-                    losses.append(loss_value)
-                    q_abs_max = th.maximum(q_abs_max, q_values.detach().abs().max())
                     if self.max_grad_norm is not None:
                         th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
                     self.policy.optimizer.step()
                     self._n_updates += 1
+                    losses.append(loss_value)
+                    q_abs_max = th.maximum(q_abs_max, q_values.detach().abs().max())
 
+        exceeded = check_q_values_bounded(self, q_abs_max.item(), batch.rewards)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/n_rounds", self._n_rounds, exclude="tensorboard")
         self.logger.record("train/batch_transitions", n_transitions)
         self.logger.record("train/loss", float(np.mean(losses)))
         self.logger.record("train/q_mean", q_values.mean().item())
         self.logger.record("train/td_target_mean", targets.mean().item())
-        self._max_abs_reward = max(self._max_abs_reward, batch.rewards.abs().max().item())
-        exceeded = check_q_values_bounded(
-            q_abs_max.item(),
-            self._max_abs_reward,
-            self.gamma,
-            self._n_rounds,
-            self.num_timesteps,
-            not self._q_bound_warned,
-        )
-        self._q_bound_warned |= exceeded
         self.logger.record("train/q_abs_max", q_abs_max.item())
         if self.gamma < 1:
             self.logger.record("train/q_bound_exceeded", int(exceeded))
@@ -462,10 +396,8 @@ class NFQ(OffPolicyAlgorithm):
 
     def fit_offline(self: SelfNFQ, dataset: TransitionDataset, iterations: int | None = None) -> SelfNFQ:
         """
-        Fit on a fixed dataset, without touching an environment: ``iterations`` fitted iterations
-        (default ``gradient_steps``), each covering every transition of the dataset as configured
-        (``batch_size``, ``target_mode``, ``fit_epochs``). The online memory is left as it was, so the model
-        can go on with :meth:`learn`. Logs ``train/*`` once at the end.
+        Fit on a fixed dataset, without an environment, as :meth:`train` fits a round (``batch_size``,
+        ``target_mode``, ``fit_epochs``); the online memory is left as it was. Logs ``train/*`` once at the end.
 
         :param dataset: the transitions to fit on; their spaces must match the model's
         :param iterations: number of fitted iterations (default: ``self.gradient_steps``)
@@ -548,18 +480,15 @@ class NFQ(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> SelfNFQ:
         """
-        Load an NFQ model from a zip file saved by :meth:`save`; anything else raises a ``ValueError``.
-        See :meth:`stable_baselines3.common.base_class.BaseAlgorithm.load` for the parameters.
+        Load an NFQ model from a zip saved by :meth:`save` (anything else raises a ``ValueError``); see
+        :meth:`stable_baselines3.common.base_class.BaseAlgorithm.load`.
 
-        Loading is code execution: SB3 stores what JSON cannot hold (spaces, schedules, classes in
-        ``policy_kwargs``) as cloudpickle, and a crafted checkpoint runs any code it likes when it is unpickled. Load
-        only checkpoints you trust, or use ``safe=True``, which unpickles nothing: it rebuilds every pickled entry
-        from the checkpoint's plain JSON (Discrete actions, the exploration schedule, ``train_freq``, a constant
-        ``learning_rate``, torch optimizer and activation classes in ``policy_kwargs``) and from ``env`` (the
-        observation space; without ``env``, only a small ``Box`` is rebuilt), loads the weights with
-        ``torch.load(weights_only=True)``, and refuses, naming it, an entry it cannot rebuild (a learning-rate
-        schedule, a custom features extractor class: pass those in ``custom_objects``). A safe load starts the next
-        ``learn()`` with new episodes and empty episode statistics. ``load_replay_buffer`` always unpickles its
+        SB3 stores spaces, schedules and classes as cloudpickle, which runs any code a crafted checkpoint holds: load
+        only checkpoints you trust, or use ``safe=True``. A safe load unpickles nothing: it rebuilds each pickled entry
+        from the checkpoint's plain JSON and from ``env`` (without ``env``, only a small ``Box`` observation space),
+        loads the weights with ``torch.load(weights_only=True)``, refuses, naming it, an entry it cannot rebuild (a
+        learning-rate schedule, a custom features extractor class: pass those in ``custom_objects``), and starts the
+        next ``learn()`` with new episodes and empty episode statistics. ``load_replay_buffer`` always unpickles its
         file: load only replay buffers you trust.
 
         :param path: path to the file (or a file-like) where to load the agent from
@@ -573,19 +502,10 @@ class NFQ(OffPolicyAlgorithm):
         :return: new model instance with loaded parameters
         """
         if safe:
-            if env is not None:  # wrapped as SB3's load wraps it (VecTransposeImage too), to read its spaces
-                env = cls._wrap_env(env)
+            env = None if env is None else cls._wrap_env(env)  # as SB3's load wraps it, to read its spaces
             custom_objects = safe_custom_objects(path, env, custom_objects, cls.policy_aliases)
         check_nfq_checkpoint(path, custom_objects)
-        return super().load(
-            path,
-            env=env,
-            device=device,
-            custom_objects=custom_objects,
-            print_system_info=print_system_info,
-            force_reset=force_reset,
-            **kwargs,
-        )
+        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
 
     def set_parameters(
         self,
@@ -602,10 +522,7 @@ class NFQ(OffPolicyAlgorithm):
         :param exact_match: whether the parameters must cover every network and each of its parameters
         :param device: Device on which the code should run.
         """
-        if not isinstance(load_path_or_dict, dict):
-            _, load_path_or_dict, _ = load_from_zip_file(load_path_or_dict, device=device, load_data=False)
-        # In load(), SB3 has already put the zip's data on the model, so its retired attributes are dropped here too.
-        super().set_parameters(drop_retired(vars(self), load_path_or_dict), exact_match, device)
+        super().set_parameters(drop_retired(vars(self), load_path_or_dict, device), exact_match, device)
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "q_net"]

@@ -2,6 +2,8 @@
 
 import functools
 import inspect
+import numbers
+import warnings
 from collections.abc import Callable
 from typing import Any, Literal, NamedTuple
 
@@ -26,6 +28,10 @@ TargetModeName = Literal["recompute_every_step", "fixed_per_iteration"]
 #: NFQ's (and DQN's) default ``exploration_fraction``: only another value is known to be chosen, and refused when it
 #: has no effect.
 DEFAULT_EXPLORATION_FRACTION = 0.1
+
+
+#: ``learn()``'s default budget: the textbook's CartPole-v1 budget, in env steps.
+DEFAULT_TOTAL_TIMESTEPS = 300_000
 
 
 #: DQN's parameters that NFQ has no counterpart for, and what NFQ does instead.
@@ -111,6 +117,26 @@ def _is_positive_number(value: object) -> bool:
 def is_positive_int(value: object) -> bool:
     """:return: whether ``value`` is an int (not a bool) above 0"""
     return isinstance(value, int) and not isinstance(value, bool) and value > 0
+
+
+def check_total_timesteps(total_timesteps: int | None) -> int:
+    """
+    :param total_timesteps: ``learn()``'s budget in env steps, or ``None``
+    :return: the budget: ``None`` gives :data:`DEFAULT_TOTAL_TIMESTEPS`, with a ``UserWarning`` saying how to watch
+        the minutes it takes (at ``verbose=0`` nothing is printed); anything but a positive number is refused
+    """
+    if total_timesteps is None:
+        warnings.warn(
+            f"learn() was called without total_timesteps: NFQ trains for its default budget of "
+            f"{DEFAULT_TOTAL_TIMESTEPS:,} env steps (the textbook's CartPole-v1 budget), which takes minutes. "
+            "Pass progress_bar=True (or verbose=1) to watch the progress, or total_timesteps to choose the budget.",
+            UserWarning,
+            stacklevel=3,
+        )
+        total_timesteps = DEFAULT_TOTAL_TIMESTEPS
+    if isinstance(total_timesteps, bool) or not isinstance(total_timesteps, numbers.Real) or not total_timesteps > 0:
+        raise ValueError(f"total_timesteps (env steps to train for) must be a positive number, got {total_timesteps!r}")
+    return total_timesteps
 
 
 def check_hyperparameters(

@@ -3,6 +3,7 @@ NFQ's rounds: how much each collects before it is fitted, and collecting them th
 """
 
 import math
+import warnings
 from typing import Any
 
 import numpy as np
@@ -73,6 +74,30 @@ def check_round_fits(round_steps: int, memory: ReplayBuffer, buffer_size: int | 
             f"Round {round_number} collected {round_steps * memory.n_envs} transitions, more than "
             f"buffer_size={buffer_size} holds; raise buffer_size."
         )
+
+
+def missing_from_memory(round_steps: int, memory: ReplayBuffer, round_number: int) -> bool:
+    """
+    A model saved partway through a round and loaded without its replay buffer counts a partly collected round that
+    its memory does not hold: fitting it would fit a short round of the transitions still to come. Say so with a
+    warning, so that the round starts over.
+
+    :param round_steps: ``env.step()`` calls the model counts into the current round
+    :param memory: NFQ's memory
+    :param round_number: the current round (from 1)
+    :return: whether the round is missing from the memory, and must start over
+    """
+    if round_steps <= memory.size():
+        return False
+    warnings.warn(
+        f"This model was saved {round_steps} env.step() calls into round {round_number}, but its "
+        f"memory holds {memory.size()}: it was loaded without its replay buffer. The round starts "
+        "over as a whole round; to go on with the collected transitions instead, call "
+        "model.load_replay_buffer(path) (of a buffer saved with save_replay_buffer) before learn().",
+        UserWarning,
+        stacklevel=3,
+    )
+    return True
 
 
 def store_interrupted_step(model: OffPolicyAlgorithm, callback: BaseCallback) -> None:

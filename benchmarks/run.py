@@ -93,14 +93,31 @@ def git_revision() -> str | None:
 
 def relative_command(module: str, argv: Sequence[str]) -> str:
     """:return: the command line, with the paths inside the repository written relative to its root"""
-    paths = [Path(argument).resolve() if Path(argument).is_absolute() else None for argument in argv]
-    return shlex.join(
-        ["python", "-m", module]
-        + [
-            str(path.relative_to(REPO_ROOT)) if path and path.is_relative_to(REPO_ROOT) else argument
-            for argument, path in zip(argv, paths, strict=True)
-        ]
-    )
+
+    def shown(argument: str) -> str:
+        path = Path(argument).resolve()
+        return (
+            str(path.relative_to(REPO_ROOT))
+            if Path(argument).is_absolute() and path.is_relative_to(REPO_ROOT)
+            else argument
+        )
+
+    return shlex.join(["python", "-m", module, *map(shown, argv)])
+
+
+def script_result(command: Sequence[str], check: bool = True) -> dict[str, Any]:
+    """
+    :param command: a script that ends by printing ``RESULT <json>``
+    :param check: also require exit status 0
+    :return: the JSON of its last ``RESULT`` line
+    """
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+    if not lines or (check and done.returncode != 0):
+        raise RuntimeError(
+            f"{shlex.join(command)} failed (exit status {done.returncode}):\n{done.stdout}\n{done.stderr}"
+        )
+    return dict(json.loads(lines[-1].removeprefix("RESULT ")))
 
 
 @dataclass(frozen=True)
@@ -525,13 +542,6 @@ def submit(jobs: Sequence[Job], workers: int, ray_address: str | None, stack: co
     return {pool.submit(run_job, job): job for job in jobs}
 
 
-def launcher(workers: int, ray_address: str | None = None) -> str:
-    """:return: how the jobs ran, as recorded in each result line's ``launcher``"""
-    if ray_address:
-        return f"ray ({ray_address})"
-    return f"local pool ({workers} spawned workers)" if workers else "in-process"
-
-
 def done_keys(results: Path, jobs: Sequence[Job], rerun: bool = False) -> set[Key]:
     """:return: the keys of ``jobs`` the file holds (with ``rerun``: only those recorded by the jobs' own command)"""
     commands = {job.command for job in jobs}
@@ -558,6 +568,8 @@ def run_jobs(
         workers = usable_cores()
     print(f"{len(jobs)} jobs: {len(jobs) - len(todo)} already in {results}, {len(todo)} to run")
     finished = failures = 0
+    pool = f"local pool ({workers} spawned workers)" if workers else "in-process"
+    launched = f"ray ({ray_address})" if ray_address else pool
     with contextlib.ExitStack() as stack:
         futures = submit(todo, workers, ray_address, stack) if todo else {}
         for future in concurrent.futures.as_completed(futures):
@@ -566,22 +578,16 @@ def run_jobs(
                 record = future.result()
             except Exception as error:
                 failures += 1
-                print(
-                    f"FAILED {job}: {''.join(traceback.format_exception(error))}",
-                    file=sys.stderr,
-                )
+                print(f"FAILED {job}: {''.join(traceback.format_exception(error))}", file=sys.stderr)
                 continue
-            record["launcher"] = launcher(workers, ray_address)
+            record["launcher"] = launched
             results.parent.mkdir(parents=True, exist_ok=True)
             with results.open("a") as file:
                 file.write(json.dumps(record) + "\n")
             finished += 1
             solved = f"solved at {record['steps_to_solve']}" if record["solved"] else "not solved"
-            print(
-                f"[{finished}/{len(todo)}] {job}: {solved}, final "
-                f"{record['final_score']:.1f}, train {record['train_seconds']:.1f}s",
-                flush=True,
-            )
+            score, seconds = record["final_score"], record["train_seconds"]
+            print(f"[{finished}/{len(todo)}] {job}: {solved}, final {score:.1f}, train {seconds:.1f}s", flush=True)
     return finished, len(jobs) - len(todo), failures
 
 

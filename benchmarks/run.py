@@ -93,16 +93,10 @@ def git_revision() -> str | None:
 
 def relative_command(module: str, argv: Sequence[str]) -> str:
     """:return: the command line, with the paths inside the repository written relative to its root"""
-
-    def shown(argument: str) -> str:
-        path = Path(argument).resolve()
-        return (
-            str(path.relative_to(REPO_ROOT))
-            if Path(argument).is_absolute() and path.is_relative_to(REPO_ROOT)
-            else argument
-        )
-
-    return shlex.join(["python", "-m", module, *map(shown, argv)])
+    paths = [Path(argument).resolve() for argument in argv]
+    inside = [Path(a).is_absolute() and p.is_relative_to(REPO_ROOT) for a, p in zip(argv, paths, strict=True)]
+    shown = [str(p.relative_to(REPO_ROOT)) if i else a for a, p, i in zip(argv, paths, inside, strict=True)]
+    return shlex.join(["python", "-m", module, *shown])
 
 
 def script_result(command: Sequence[str], check: bool = True) -> dict[str, Any]:
@@ -386,9 +380,12 @@ def train(job: Job, tracker: BaseCallback) -> tuple[Any, str | None]:
     if job.config.kind == "reference":
         model: Any = ReferenceNFQ(job.config.env_id, seed=job.seed, **job.config.kwargs)
         if isinstance(tracker, StopTrainingOnBookCriterion):
-            greedy = lambda observation: int(model.act(observation[None])[0])  # noqa: E731
-            end = lambda agent: not tracker.criterion.on_training_episode_end(agent.num_timesteps, greedy)  # noqa: E731
-            model.learn(job.budget, episode_callback=end)
+            criterion = tracker.criterion
+
+            def after_episode(agent: ReferenceNFQ) -> bool:
+                return not criterion.on_training_episode_end(agent.num_timesteps, lambda o: int(agent.act(o[None])[0]))
+
+            model.learn(job.budget, episode_callback=after_episode)
         elif isinstance(tracker, Evaluations):  # evaluated at step 0, as SB3's learn() does at its first rollout start
             tracker.maybe_evaluate(0, model)
             model.learn(job.budget, callback=lambda agent: tracker.maybe_evaluate(agent.num_timesteps, agent))
@@ -512,8 +509,11 @@ def exit_with_parent(parent: int) -> None:
 
 def submit(jobs: Sequence[Job], workers: int, ray_address: str | None, stack: contextlib.ExitStack) -> dict[Any, Job]:
     """
-    :return: a future of each job's record: a Ray task (``num_cpus=1``), a spawned pool process, or (``workers=0``)
-        this process, each job in a fresh process but the last; what has to be shut down goes on ``stack``
+    :param jobs: the jobs
+    :param workers: local worker processes (0: one job after the other in this process)
+    :param ray_address: run the jobs as Ray tasks (``num_cpus=1``) on this cluster instead
+    :param stack: where what has to be shut down afterwards goes
+    :return: a future of each job's record
     """
     if ray_address:
         try:

@@ -255,12 +255,13 @@ def ratio_target(num: Cell | None, den: Cell | None, low: float, high: float) ->
 
 def jobs_at_once(records: Sequence[dict[str, Any]]) -> float:
     """:return: how many jobs ran at once with these (their pool's workers; 1 in-process; ``inf`` on Ray)"""
-    launchers = [str(record.get("launcher", "in-process")) for record in records]
-    return max(
-        math.inf if name.startswith("ray (") else int(name.removeprefix("local pool (").split()[0])
-        if name.startswith("local pool (") else 1
-        for name in launchers
-    )  # fmt: skip
+
+    def at_once(launcher: str) -> float:
+        if launcher.startswith("ray ("):
+            return math.inf
+        return int(launcher.removeprefix("local pool (").split()[0]) if launcher.startswith("local pool (") else 1
+
+    return max(at_once(str(record.get("launcher", "in-process"))) for record in records)
 
 
 def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baseline: str) -> tuple[Cell, Cell] | None:

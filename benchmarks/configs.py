@@ -1,12 +1,7 @@
 """
-What the benchmark runs: the envs (threshold, evaluation period), the seeds, and the algorithm configs.
-
-The NFQ configs are data: zoo-format YAML files in ``benchmarks/hyperparams/``, one per named config; an entry's keys
-are ``NFQ`` keyword arguments written as in the RL Zoo's files, plus ``n_timesteps`` (the budget), ``n_envs`` and
-``policy``. A changed config is a new file with a new name, never an edit, so every recorded run keeps the name of the
-settings it ran. The peers are SB3's DQN and sb3_contrib's QR-DQN with the RL Zoo's tuned hyperparameters, read from
-the installed ``rl_zoo3`` package. A name ending in ``-keep-best`` runs its base config with
-``sb3_nfq.KeepBestCallback`` (training ends with the policy whose training episodes scored best).
+What the benchmark runs: the envs (threshold, evaluation period), the seeds, and the algorithm configs (NFQ: the
+zoo-format files of ``benchmarks/hyperparams/``, never edited once run; the peers: the installed ``rl_zoo3``'s DQN
+and QR-DQN entries; a ``-keep-best`` name runs its base config with ``sb3_nfq.KeepBestCallback``).
 """
 
 import importlib.metadata

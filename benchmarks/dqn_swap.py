@@ -11,8 +11,6 @@ when it has them (else prints it only).
 
 import argparse
 import ast
-import json
-import subprocess
 import sys
 import tempfile
 from collections.abc import Sequence
@@ -20,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.report import publish
-from benchmarks.run import REPO_ROOT, machine_line, package_versions
+from benchmarks.run import REPO_ROOT, machine_line, package_versions, script_result
 
 SCRIPTS = REPO_ROOT / "examples" / "coming_from_dqn"
 DEFAULT_OUT = REPO_ROOT / "benchmarks" / "results" / "dqn_swap.json"
@@ -36,13 +34,8 @@ def run_script(name: str, total_timesteps: int, seed: int, log_dir: Path) -> dic
     :return: the script's ``RESULT`` line, with the script's name
     """
     command = [sys.executable, str(SCRIPTS / name), "--total-timesteps", str(total_timesteps), "--seed", str(seed)]
-    done = subprocess.run(
-        [*command, "--threads", "1", "--log-dir", str(log_dir)], capture_output=True, text=True, check=False
-    )
-    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
-    if done.returncode != 0 or not lines:
-        raise RuntimeError(f"{name} failed (exit status {done.returncode}):\n{done.stdout}\n{done.stderr}")
-    return {"script": f"examples/coming_from_dqn/{name}", **json.loads(lines[-1].removeprefix("RESULT "))}
+    result, _ = script_result([*command, "--threads", "1", "--log-dir", str(log_dir)])
+    return {"script": f"examples/coming_from_dqn/{name}", **result}
 
 
 def script_settings(name: str) -> dict[str, str]:

@@ -3,22 +3,18 @@ Turn the runner's JSON lines into ``benchmarks/results/README.md`` (tables, targ
 
     python -m benchmarks.report [--results benchmarks/results/runs.jsonl] [--out-dir benchmarks/results]
 
-Per env and algorithm: seeds, success rate, steps to solve (median and IQR; IQM with rliable's 95% bootstrap CI),
-final greedy score at the budget, training seconds. A run that never solved counts as the steps it trained
-(censored): a statistic that reaches such a value is a lower bound, shown ``≥``. The targets are data
-(``benchmarks/targets.yml``). Runs of retired configs, or recorded under settings their name no longer holds, get a
-table of their own, labelled by config hash (their settings are in the records), and stay out of targets and plots.
-The ``--protocol book`` runs get a section beside the book's printed numbers. With the default results file, one
-results table also goes into the top-level README, between its markers.
+A run that never solved counts as the steps it trained: a statistic that reaches such a value is a lower bound (``≥``).
+Runs of retired configs, or of settings their name no longer holds, get a table of their own and stay out of targets
+and plots. With the default results file, one results table also goes into the top-level README, between its markers.
 """
 
 import argparse
+import itertools
 import json
 import math
 import sys
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +41,7 @@ BOOK_MEAN_EPISODES = 2_344
 BOOK_PAIR = ("nfq-book", "reference-nfq")
 BOOK_ALPHA = 0.05
 BOOK_MIN_SEEDS = 15
+GROUP_KEYS = ["env", "algo", "budget", "config_hash"]
 
 
 def iqm_with_ci(values: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
@@ -77,51 +74,33 @@ def iqm_with_ci(values: np.ndarray, seed: int = 0) -> tuple[float, float, float]
     return point, float(intervals["x"][0, 0]), float(intervals["x"][1, 0])
 
 
-@dataclass
 class Cell:
-    """The runs of one algorithm config on one env (one budget, one config hash), one per seed."""
+    """
+    The runs of one algorithm config on one env (one budget, one config hash), one per seed.
 
-    env: str
-    algo: str
-    budget: int
-    config_hash: str
-    runs: list[dict[str, Any]]
-    label: str = ""
-    #: A retired config, or settings its name no longer holds.
-    other: bool = False
+    :param runs: the records
+    :param other: a retired config, or settings its name no longer holds
+    """
 
-    @property
-    def n(self) -> int:
-        """:return: number of runs (seeds)"""
-        return len(self.runs)
-
-    def steps(self) -> tuple[np.ndarray, np.ndarray]:
-        """:return: steps to solve per run (unsolved: steps trained) and whether each is censored (unsolved)"""
-        censored = np.array([run["steps_to_solve"] is None for run in self.runs])
-        steps = [
-            run["steps_to_solve"] if run["steps_to_solve"] is not None else run["steps_trained"] for run in self.runs
-        ]
-        return np.array(steps, dtype=float), censored
+    def __init__(self, runs: list[dict[str, Any]], other: bool = False) -> None:
+        self.runs, self.other, self.n = runs, other, len(runs)
+        self.env, self.algo, self.label = runs[0]["env"], runs[0]["algo"], runs[0]["algo"]
+        self.budget, self.config_hash = int(runs[0]["budget"]), runs[0]["config_hash"]
+        self.stop_at_solve = any(run.get("stop_at_solve") for run in runs)
+        self.eval_every = max(int(run["eval_every"]) for run in runs)
+        #: Steps to solve per run (unsolved: the steps trained), and whether each is censored (unsolved).
+        self.censored = np.array([run["steps_to_solve"] is None for run in runs])
+        self.steps = np.array([run["steps_to_solve"] for run in runs], dtype=float)
+        self.steps[self.censored] = [run["steps_trained"] for run in runs if run["steps_to_solve"] is None]
 
     def steps_quantile(self, q: float) -> tuple[float, bool]:
         """:return: the ``q``-th percentile of the steps to solve, and whether it is only a lower bound"""
-        steps, censored = self.steps()
-        value = float(np.percentile(steps, q))
-        return value, bool(censored.any() and value >= steps[censored].min())
+        value = float(np.percentile(self.steps, q))
+        return value, bool(self.censored.any() and value >= self.steps[self.censored].min())
 
     def column(self, key: str) -> np.ndarray:
         """:return: one value per run of a numeric record field"""
         return np.array([run[key] for run in self.runs], dtype=float)
-
-    @property
-    def stop_at_solve(self) -> bool:
-        """:return: whether the runs stopped at their solve"""
-        return any(run.get("stop_at_solve") for run in self.runs)
-
-    @property
-    def eval_every(self) -> int:
-        """:return: the evaluation period of the runs (the largest, should they differ)"""
-        return max(int(run["eval_every"]) for run in self.runs)
 
     def n_at_threshold(self) -> int:
         """:return: how many runs' final score reaches the threshold"""
@@ -134,13 +113,17 @@ def _steps(value: float, lower_bound: bool) -> str:
 
 def _seeds(runs: Sequence[dict[str, Any]]) -> str:
     """:return: the runs' seeds, consecutive ones as ranges (``0-9, 12, 34``)"""
-    groups: list[list[int]] = []
-    for seed in sorted(int(run["seed"]) for run in runs):
-        if groups and seed == groups[-1][-1] + 1:
-            groups[-1].append(seed)
-        else:
-            groups.append([seed])
+    seeds = enumerate(sorted(int(run["seed"]) for run in runs))
+    groups = [[seed for _, seed in group] for _, group in itertools.groupby(seeds, lambda pair: pair[1] - pair[0])]
     return ", ".join(f"{group[0]}-{group[-1]}" if len(group) > 2 else ", ".join(map(str, group)) for group in groups)
+
+
+def _unique(records: Sequence[dict[str, Any]], key: str) -> list[Any]:
+    return list({repr(record.get(key)): record.get(key) for record in records}.values())
+
+
+def _joined(records: Sequence[dict[str, Any]], key: str) -> str:
+    return ", ".join(map(str, _unique(records, key)))
 
 
 def is_current(record: dict[str, Any]) -> bool:
@@ -158,30 +141,22 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     :return: env -> cells: the current configs' in :func:`configs.algorithm_names` order, then the others in the
         order the file first holds them; a seed recorded twice in a cell keeps its last line
     """
-    if not records:
-        return {}
-    frame = pd.DataFrame({"record": list(records)})
-    for key in ("env", "algo", "budget", "config_hash", "seed"):
-        frame[key] = [record[key] for record in records]
-    frame = frame.drop_duplicates(["env", "algo", "budget", "config_hash", "seed"], keep="last")
-    order = {algo: index for index, algo in enumerate(configs.algorithm_names())}
-    by_env: dict[str, list[Cell]] = {}
-    env_order = [*configs.ENVS, *sorted(set(frame["env"]) - set(configs.ENVS))]
-    for (env, algo, budget, config_hash), group in frame.groupby(["env", "algo", "budget", "config_hash"], sort=False):
+    frame = pd.DataFrame([{key: record[key] for key in [*GROUP_KEYS, "seed"]} for record in records])
+    frame["record"] = list(records)
+    cells = []
+    for _, group in frame.drop_duplicates([*GROUP_KEYS, "seed"], keep="last").groupby(GROUP_KEYS, sort=False):
         runs = sorted(group["record"], key=lambda run: int(run["seed"]))
-        cell = Cell(str(env), str(algo), int(budget), str(config_hash), runs, other=not is_current(runs[0]))
-        by_env.setdefault(str(env), []).append(cell)
-    result = {}
-    for env in [env for env in env_order if env in by_env]:
-        cells = sorted(
-            by_env[env], key=lambda c: (c.other, 0 if c.other else order.get(c.algo, len(order)), -c.n * (not c.other))
+        cells.append(Cell(runs, other=not is_current(runs[0])))
+    order = {algo: index for index, algo in enumerate(configs.algorithm_names())}
+    by_env = {}
+    for env in [*configs.ENVS, *sorted({cell.env for cell in cells} - set(configs.ENVS))]:
+        in_env = [cell for cell in cells if cell.env == env]
+        by_env[env] = sorted(
+            in_env, key=lambda c: (c.other, 0 if c.other else order.get(c.algo, len(order)), -c.n * (not c.other))
         )
-        for cell in cells:
-            cell.label = _label(
-                cell, [other for other in cells if other.algo == cell.algo and other.other == cell.other]
-            )
-        result[env] = cells
-    return result
+        for cell in by_env[env]:
+            cell.label = _label(cell, [o for o in by_env[env] if o.algo == cell.algo and o.other == cell.other])
+    return {env: cells for env, cells in by_env.items() if cells}
 
 
 def _label(cell: Cell, same: Sequence[Cell]) -> str:
@@ -204,9 +179,8 @@ def env_table(cells: Sequence[Cell]) -> str:
     rows = []
     for cell in cells:
         (median, mb), (q1, q1b), (q3, q3b) = (cell.steps_quantile(q) for q in (50, 25, 75))
-        steps, censored = cell.steps()
-        iqm, low, high = iqm_with_ci(steps)
-        iqm_bound = int(censored.sum()) > math.floor(0.25 * cell.n)
+        iqm, low, high = iqm_with_ci(cell.steps)
+        iqm_bound = int(cell.censored.sum()) > math.floor(0.25 * cell.n)
         scores, seconds = cell.column("final_score"), cell.column("train_seconds")
         s1, s2, s3 = np.percentile(seconds, [25, 50, 75])
         diverged = sum(bool(run.get("diverged")) for run in cell.runs)
@@ -216,7 +190,7 @@ def env_table(cells: Sequence[Cell]) -> str:
                 "seeds": _seeds(cell.runs),
                 "budget": f"{cell.budget:,}",
                 "evaluated every": f"{cell.eval_every:,} steps" + (" (stopped at solve)" if cell.stop_at_solve else ""),
-                "success": f"{np.mean(~censored):.0%}" + (f" ({diverged} diverged)" if diverged else ""),
+                "success": f"{np.mean(~cell.censored):.0%}" + (f" ({diverged} diverged)" if diverged else ""),
                 "steps to solve: median [IQR]": f"{_steps(median, mb)} [{_steps(q1, q1b)}, {_steps(q3, q3b)}]",
                 "IQM [95% CI]": f"{_steps(iqm, iqm_bound)} [{low:,.0f}, {high:,.0f}]",
                 "final score: mean ± sd (≥ threshold)": f"{scores.mean():.1f} ± {scores.std():.1f} "
@@ -248,9 +222,8 @@ def primary_cell(
 def median_ratio_ci(num: Cell, den: Cell, seed: int = 0, n_resamples: int = 10_000) -> tuple[float, float]:
     """:return: the 95% percentile-bootstrap CI of median steps(num) / median steps(den), runs resampled per cell"""
     rng = np.random.default_rng(seed)
-    num_steps, den_steps = num.steps()[0], den.steps()[0]
-    num_medians = np.median(rng.choice(num_steps, (n_resamples, len(num_steps))), axis=1)
-    den_medians = np.median(rng.choice(den_steps, (n_resamples, len(den_steps))), axis=1)
+    num_medians = np.median(rng.choice(num.steps, (n_resamples, num.n)), axis=1)
+    den_medians = np.median(rng.choice(den.steps, (n_resamples, den.n)), axis=1)
     low, high = np.percentile(num_medians / den_medians, [2.5, 97.5])
     return float(low), float(high)
 
@@ -280,16 +253,15 @@ def ratio_target(num: Cell | None, den: Cell | None, low: float, high: float) ->
     return ("not met", text) if ratio_high < low or ratio_low > high else ("not enough data", text)
 
 
-def jobs_at_once(record: dict[str, Any]) -> int | None:
-    """:return: how many jobs ran at once with this one (its pool's workers; 1 in-process; ``None`` on Ray)"""
-    name = str(record.get("launcher", "in-process"))
-    if name.startswith("ray ("):
-        return None
-    return int(name.removeprefix("local pool (").split()[0]) if name.startswith("local pool (") else 1
+def jobs_at_once(records: Sequence[dict[str, Any]]) -> float:
+    """:return: how many jobs ran at once with these (their pool's workers; 1 in-process; ``inf`` on Ray)"""
 
+    def at_once(launcher: str) -> float:
+        if launcher.startswith("ray ("):
+            return math.inf
+        return int(launcher.removeprefix("local pool (").split()[0]) if launcher.startswith("local pool (") else 1
 
-def _workers(records: Sequence[dict[str, Any]]) -> int:
-    return max(sys.maxsize if (jobs := jobs_at_once(record)) is None else jobs for record in records)
+    return max(at_once(str(record.get("launcher", "in-process"))) for record in records)
 
 
 def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baseline: str) -> tuple[Cell, Cell] | None:
@@ -302,16 +274,10 @@ def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baselin
     for record in records:
         if record["env"] == env and record["algo"] in (algo, baseline) and not record.get("stop_at_solve"):
             by_command.setdefault(record["command"], {algo: [], baseline: []})[record["algo"]].append(record)
-    both = [runs for runs in by_command.values() if runs[algo] and runs[baseline]]
-    if not both:
-        return None
-    runs = max(
-        both, key=lambda runs: (min(len(runs[algo]), len(runs[baseline])), -_workers([*runs[algo], *runs[baseline]]))
+    both = [(Cell(runs[algo]), Cell(runs[baseline])) for runs in by_command.values() if runs[algo] and runs[baseline]]
+    return max(
+        both, key=lambda pair: (min(pair[0].n, pair[1].n), -jobs_at_once(pair[0].runs + pair[1].runs)), default=None
     )
-    num, den = (
-        Cell(env, name, runs[name][0]["budget"], runs[name][0]["config_hash"], runs[name]) for name in (algo, baseline)
-    )
-    return num, den
 
 
 def seconds_ratio_target(
@@ -323,8 +289,8 @@ def seconds_ratio_target(
         have = f"{min(pair[0].n, pair[1].n)} seeds" if pair else "none"
         return "not enough data", f"needs {MIN_SEEDS} seeds of both run to the budget by one command ({have})"
     num, den = (float(np.median(cell.column("train_seconds"))) for cell in pair)
-    workers = _workers([*pair[0].runs, *pair[1].runs])
-    ran = "on a Ray cluster" if workers == sys.maxsize else f"{workers} job{'s' if workers > 1 else ''} at a time"
+    workers = jobs_at_once(pair[0].runs + pair[1].runs)
+    ran = "on a Ray cluster" if workers == math.inf else f"{workers} job{'s' if workers > 1 else ''} at a time"
     text = f"{num / den:.2f} ({num:.0f} s / {den:.0f} s, {pair[0].n} seeds, {ran})"
     return ("met" if num / den <= high else "not met"), text
 
@@ -459,10 +425,6 @@ def plot_curves(env: str, cells: Sequence[Cell], path: Path, seed: int = 0) -> N
     plt.close(figure)
 
 
-def _unique(records: Sequence[dict[str, Any]], key: str) -> list[Any]:
-    return list({repr(record.get(key)): record.get(key) for record in records}.values())
-
-
 def book_cells(records: Sequence[dict[str, Any]]) -> dict[str, Cell]:
     """:return: algo -> its ``--protocol book`` runs on CartPole-v1 (the latest per seed), :data:`BOOK_PAIR` first"""
     by_algo: dict[str, dict[int, dict[str, Any]]] = {}
@@ -470,11 +432,7 @@ def book_cells(records: Sequence[dict[str, Any]]) -> dict[str, Cell]:
         if record.get("protocol") == "book" and record["env"] == "CartPole-v1":
             by_algo.setdefault(record["algo"], {})[int(record["seed"])] = record
     order = [algo for algo in BOOK_PAIR if algo in by_algo] + sorted(set(by_algo) - set(BOOK_PAIR))
-    cells = {}
-    for algo in order:
-        runs = [by_algo[algo][seed] for seed in sorted(by_algo[algo])]
-        cells[algo] = Cell("CartPole-v1", algo, int(runs[0]["budget"]), runs[0]["config_hash"], runs, algo)
-    return cells
+    return {algo: Cell([by_algo[algo][seed] for seed in sorted(by_algo[algo])]) for algo in order}
 
 
 def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
@@ -503,19 +461,17 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
             runs = [run for run in cell.runs if subset is None or int(run["seed"]) in subset]
             if not runs:
                 continue
-            part = Cell(cell.env, cell.algo, cell.budget, cell.config_hash, runs)
-            steps, censored = part.steps()
+            part, bound = Cell(runs), "≥" if any(run["steps_to_solve"] is None for run in runs) else ""
             episodes = np.array([run["episodes_to_solve"] or run["episodes_trained"] for run in runs], dtype=float)
-            bound = "≥" if censored.any() else ""
             seeds = ", ".join(str(run["seed"]) for run in runs) if subset is not None else f"{part.n} seeds"
             rows.append(
                 {
                     "implementation": f"{cell.algo}, {subset_name} ({seeds})",
                     "seeds": part.n,
-                    "solved": f"{int((~censored).sum())}/{part.n}",
-                    "env steps: mean": f"{bound}{steps.mean():,.0f}",
+                    "solved": f"{int((~part.censored).sum())}/{part.n}",
+                    "env steps: mean": f"{bound}{part.steps.mean():,.0f}",
                     "median [min, max]": f"{_steps(*part.steps_quantile(50))} "
-                    f"[{steps.min():,.0f}, {bound}{steps.max():,.0f}]",
+                    f"[{part.steps.min():,.0f}, {bound}{part.steps.max():,.0f}]",
                     "episodes: mean": f"{bound}{episodes.mean():,.0f}",
                     "median": f"{bound}{np.median(episodes):,.0f}",
                     "train s: median": f"{np.median(part.column('train_seconds')):.1f}",
@@ -524,7 +480,7 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
             )
             if subset is not None and part.n == len(BOOK_SEEDS):
                 against_book.append(
-                    f"{cell.algo} {steps.mean() / BOOK_MEAN_STEPS:.2f}x its steps and "
+                    f"{cell.algo} {part.steps.mean() / BOOK_MEAN_STEPS:.2f}x its steps and "
                     f"{episodes.mean() / BOOK_MEAN_EPISODES:.2f}x its episodes"
                 )
     lines = [
@@ -536,24 +492,17 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
         "",
         "Runner command(s): "
         + "; ".join(f"`{command}`" for command in _unique(records, "command"))
-        + ". Torch threads per job: "
-        + ", ".join(map(str, _unique(records, "torch_threads")))
-        + "; launcher: "
-        + ", ".join(map(str, _unique(records, "launcher")))
-        + ".",
+        + f". Torch threads per job: {_joined(records, 'torch_threads')}; launcher: {_joined(records, 'launcher')}.",
         "",
         pd.DataFrame(rows).to_markdown(index=False),
     ]
     if against_book:
-        lines += [
-            "",
-            "Mean over the book's five seeds, against the book's printed means: " + "; ".join(against_book) + ".",
-        ]
+        lines += ["", f"Mean over the book's five seeds, against the book's printed means: {'; '.join(against_book)}."]
     if all(algo in cells for algo in BOOK_PAIR):
         num, den = cells[BOOK_PAIR[0]], cells[BOOK_PAIR[1]]
         ratio = num.steps_quantile(50)[0] / den.steps_quantile(50)[0]
         low, high = median_ratio_ci(num, den)
-        p_value = float(mannwhitneyu(num.steps()[0], den.steps()[0], alternative="two-sided").pvalue)
+        p_value = float(mannwhitneyu(num.steps, den.steps, alternative="two-sided").pvalue)
         if min(num.n, den.n) < BOOK_MIN_SEEDS:
             verdict = f"not judged yet: {min(num.n, den.n)} seeds, {BOOK_MIN_SEEDS} needed"
         elif p_value < BOOK_ALPHA:
@@ -571,6 +520,14 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
+def _pair_columns(pair: Sequence[Cell]) -> dict[str, str]:
+    return {
+        "steps to solve: median": " vs ".join(_steps(*cell.steps_quantile(50)) for cell in pair),
+        "final score ≥ threshold": " vs ".join(f"{cell.n_at_threshold()}/{cell.n}" for cell in pair),
+        "train s: median": " vs ".join(f"{np.median(cell.column('train_seconds')):.0f}" for cell in pair),
+    }
+
+
 def readme_table(records: Sequence[dict[str, Any]], book_records: Sequence[dict[str, Any]]) -> str:
     """
     :return: the top-level README's results table: per env, the shipped config against dqn-zoo (run side by side by
@@ -578,36 +535,21 @@ def readme_table(records: Sequence[dict[str, Any]], book_records: Sequence[dict[
     """
     rows = []
     for env in configs.ENVS:
-        pair = side_by_side(records, env, configs.SHIPPED[env], "dqn-zoo")
-        if pair is None:
-            continue
-        nfq = pair[0]
-        rows.append(
-            {
-                "env": env,
-                "NFQ config (vs dqn-zoo)": nfq.algo,
-                "seeds": _seeds(nfq.runs),
-                "steps to solve: median": " vs ".join(_steps(*cell.steps_quantile(50)) for cell in pair),
-                "final score ≥ threshold": " vs ".join(f"{cell.n_at_threshold()}/{cell.n}" for cell in pair),
-                "train s: median": " vs ".join(f"{np.median(cell.column('train_seconds')):.0f}" for cell in pair),
-                "command": f"`{nfq.runs[0]['command']}`",
-            }
-        )
+        if pair := side_by_side(records, env, configs.SHIPPED[env], "dqn-zoo"):
+            command = {"command": f"`{pair[0].runs[0]['command']}`"}
+            rows.append(
+                {"env": env, "NFQ config (vs dqn-zoo)": pair[0].algo, "seeds": _seeds(pair[0].runs)}
+                | _pair_columns(pair)
+                | command
+            )
     cells = book_cells(book_records)
     if all(algo in cells for algo in BOOK_PAIR):
         book_pair = [cells[algo] for algo in BOOK_PAIR]
-        rows.append(
-            {
-                "env": "CartPole-v1, the book's criterion",
-                "NFQ config (vs dqn-zoo)": "nfq-book vs reference-nfq",
-                "seeds": _seeds(book_pair[0].runs),
-                "steps to solve: median": " vs ".join(_steps(*cell.steps_quantile(50)) for cell in book_pair)
-                + f" (the book's printed mean over its 5 seeds: {BOOK_MEAN_STEPS:,})",
-                "final score ≥ threshold": " vs ".join(f"{cell.n_at_threshold()}/{cell.n}" for cell in book_pair),
-                "train s: median": " vs ".join(f"{np.median(cell.column('train_seconds')):.0f}" for cell in book_pair),
-                "command": "; ".join(f"`{command}`" for command in _unique(book_pair[0].runs, "command")),
-            }
-        )
+        columns = _pair_columns(book_pair)
+        columns["steps to solve: median"] += f" (the book's printed mean over its 5 seeds: {BOOK_MEAN_STEPS:,})"
+        command = {"command": "; ".join(f"`{command}`" for command in _unique(book_pair[0].runs, "command"))}
+        row = {"env": "CartPole-v1, the book's criterion", "NFQ config (vs dqn-zoo)": "nfq-book vs reference-nfq"}
+        rows.append(row | {"seeds": _seeds(book_pair[0].runs)} | columns | command)
     return pd.DataFrame(rows).to_markdown(index=False)
 
 
@@ -675,10 +617,7 @@ def build_report(
         "",
         "Machine(s): " + "; ".join(f"`{machine}`" for machine in _unique(records, "machine")),
         "",
-        "Torch threads per job: "
-        + ", ".join(map(str, _unique(records, "torch_threads")))
-        + "; launcher: "
-        + ", ".join(map(str, _unique(records, "launcher"))),
+        f"Torch threads per job: {_joined(records, 'torch_threads')}; launcher: {_joined(records, 'launcher')}",
         "",
         "Versions: " + "; ".join(versions),
         "",
@@ -709,8 +648,7 @@ def build_report(
     for env, cells in cells_by_env.items():
         periods = ", ".join(str(e) for e in _unique([run for cell in cells for run in cell.runs], "eval_every"))
         lines += [f"## {env} (threshold {cells[0].runs[0]['threshold']:g}, evaluation every {periods} steps)", ""]
-        current = [cell for cell in cells if not cell.other]
-        if current:
+        if current := [cell for cell in cells if not cell.other]:
             plot_curves(env, current, out_dir / f"curves_{env}.png")
             lines += [env_table(current), "", f"![{env} learning curves](curves_{env}.png)", ""]
         if other := [cell for cell in cells if cell.other]:
@@ -721,18 +659,14 @@ def build_report(
                 env_table(other),
                 "",
             ]
-    lines += book_protocol_lines(book_records)
-    text = "\n".join(lines)
+    text = "\n".join([*lines, *book_protocol_lines(book_records)])
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "README.md").write_text(text)
     return text
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """
-    :param argv: arguments (default: ``sys.argv[1:]``)
-    :return: exit status (1 when there are no results)
-    """
+    """:param argv: arguments (default: ``sys.argv[1:]``) :return: exit status (1 when there are no results)"""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="the runner's JSON-lines file")
@@ -743,12 +677,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not records:
         print(f"no results in {args.results}", file=sys.stderr)
         return 1
-    out_dir = args.out_dir or args.results.parent
-    path = args.results.resolve()
+    out_dir, path = args.out_dir or args.results.parent, args.results.resolve()
     shown = str(path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path)
     build_report(records, out_dir, shown, relative_command("benchmarks.report", argv), book_records)
     print(f"wrote {out_dir / 'README.md'}")
-    if args.results.resolve() == DEFAULT_RESULTS and README.is_file() and README_MARKERS[0] in README.read_text():
+    if path == DEFAULT_RESULTS and README.is_file() and README_MARKERS[0] in README.read_text():
         README.write_text(replace_block(README.read_text(), README_MARKERS, readme_table(records, book_records)))
         print(f"wrote the results table into {README}")
     return 0

@@ -5,17 +5,7 @@ Benchmark runner: train (algorithm config x env x seed) jobs and append one JSON
         [--budget N] [--eval-every N] [--stop-at-solve] [--protocol rounds|book] [--workers 2]
         [--results benchmarks/results/runs.jsonl] [--ray-address local|auto|ray://host:10001] [--dry-run]
 
-Criterion (``--protocol rounds``, the default): at step 0, then after each NFQ or reference round (for DQN and
-QR-DQN: at the first rollout start) at or after each multiple of ``eval_every`` env steps, and at the end of training,
-the greedy policy plays 100 episodes with SB3's ``evaluate_policy`` on a ``VecEnv`` of 100 envs, episode ``i``
-starting from ``reset(seed=CURVE_SEED_BASE + 1000 * seed + i)``. A job is solved at the first evaluation whose mean
-reaches the env's threshold; training goes on to the budget (unless ``--stop-at-solve``), then 100 new episodes
-(``FINAL_SEED_BASE``) give the final score. ``--protocol book`` uses the book's criterion instead
-(``sb3_nfq.StopTrainingOnBookCriterion``); its records go to ``benchmarks/results/book_protocol.jsonl``.
-
-Timing: each job runs in its own spawned process (or Ray task with ``num_cpus=1``) with ``torch.set_num_threads(1)``,
-at most one job per core. ``train_seconds`` is the time in ``learn()`` minus the evaluations in it. Resumable: a job
-whose key (algo, env, seed, budget, config hash) is in the results file is skipped.
+The criterion, the timing and the record fields: benchmarks/README.md ("What is measured").
 """
 
 import argparse
@@ -35,12 +25,11 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
@@ -49,7 +38,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize, sync_envs_normalization
 
 from benchmarks import configs
-from sb3_nfq.callbacks import StopTrainingOnBookCriterion
+from sb3_nfq.callbacks import BookCriterion, StopTrainingOnBookCriterion
 from sb3_nfq.configs import vec_normalize_kwargs, zoo_to_kwargs
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -72,9 +61,9 @@ def usable_cores() -> int:
 def machine_line() -> str:
     """:return: one line describing this machine: CPU model, cores, memory, OS"""
     model = platform.processor() or platform.machine()
-    with contextlib.suppress(OSError):
-        names = [line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name")]
-        model = names[0].split(":", 1)[1].strip() if names else model
+    with contextlib.suppress(OSError, StopIteration):
+        cpuinfo = Path("/proc/cpuinfo").read_text().splitlines()
+        model = next(line for line in cpuinfo if line.startswith("model name")).split(":", 1)[1].strip()
     memory = ""
     with contextlib.suppress(ValueError, OSError, AttributeError):
         memory = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.0f} GiB RAM"
@@ -83,9 +72,8 @@ def machine_line() -> str:
 
 def package_versions() -> dict[str, str]:
     """:return: versions of the packages a result depends on"""
-    names = ("sb3_nfq", "stable_baselines3", "sb3_contrib", "torch", "gymnasium", "numpy", "rl_zoo3")
     versions = {"python": platform.python_version()}
-    for name in names:
+    for name in ("sb3_nfq", "stable_baselines3", "sb3_contrib", "torch", "gymnasium", "numpy", "rl_zoo3"):
         with contextlib.suppress(importlib.metadata.PackageNotFoundError):
             versions[name] = importlib.metadata.version(name.replace("_", "-"))
     return versions
@@ -93,8 +81,8 @@ def package_versions() -> dict[str, str]:
 
 def git_revision() -> str | None:
     """:return: the repository's commit (with ``+dirty`` if sb3_nfq/ or benchmarks/ have local changes), if known"""
+    git = ["git", "-C", str(REPO_ROOT)]
     try:
-        git = ["git", "-C", str(REPO_ROOT)]
         commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
         status = [*git, "status", "--porcelain", "--", "sb3_nfq", "benchmarks"]
         dirty = subprocess.run(status, capture_output=True, text=True, check=True).stdout.strip()
@@ -105,12 +93,29 @@ def git_revision() -> str | None:
 
 def relative_command(module: str, argv: Sequence[str]) -> str:
     """:return: the command line, with the paths inside the repository written relative to its root"""
-    arguments = []
-    for argument in argv:
-        path = Path(argument)
-        is_inside = path.is_absolute() and path.resolve().is_relative_to(REPO_ROOT)
-        arguments.append(str(path.resolve().relative_to(REPO_ROOT)) if is_inside else argument)
-    return shlex.join(["python", "-m", module, *arguments])
+    paths = [Path(argument).resolve() for argument in argv]
+    inside = [Path(a).is_absolute() and p.is_relative_to(REPO_ROOT) for a, p in zip(argv, paths, strict=True)]
+    shown = [str(p.relative_to(REPO_ROOT)) if i else a for a, p, i in zip(argv, paths, inside, strict=True)]
+    return shlex.join(["python", "-m", module, *shown])
+
+
+def script_result(
+    command: Sequence[str], check: bool = True, cwd: Path | None = None
+) -> tuple[dict[str, Any], list[str]]:
+    """
+    :param command: a script that ends by printing ``RESULT <json>``
+    :param check: also require exit status 0
+    :param cwd: where it runs (default: here)
+    :return: the JSON of its last ``RESULT`` line, and every line it printed
+    """
+    done = subprocess.run(command, capture_output=True, text=True, check=False, cwd=cwd)
+    printed = done.stdout.splitlines()
+    lines = [line for line in printed if line.startswith("RESULT ")]
+    if not lines or (check and done.returncode != 0):
+        raise RuntimeError(
+            f"{shlex.join(command)} failed (exit status {done.returncode}):\n{done.stdout}\n{done.stderr}"
+        )
+    return dict(json.loads(lines[-1].removeprefix("RESULT "))), printed
 
 
 @dataclass(frozen=True)
@@ -118,43 +123,38 @@ class Job:
     """
     One training run: an algorithm config on one env with one seed.
 
-    :param algo: algorithm config name
-    :param kind: ``nfq``, ``reference``, ``dqn`` or ``qrdqn``
-    :param env_id: gymnasium env id
+    :param config: the algorithm config on the env
     :param seed: random seed (model, training env, evaluation episodes)
     :param budget: env-step budget
-    :param kwargs: the config's constructor kwargs (plain data)
-    :param threshold: solve threshold (mean greedy return)
     :param eval_every: evaluation period in env steps
     :param n_eval_episodes: greedy episodes per evaluation
     :param stop_at_solve: stop training at the first solved evaluation
     :param protocol: ``"rounds"`` or ``"book"`` (the book's protocol always stops at solve)
-    :param source: where the config comes from
     :param command: the runner command that created the job
     :param git: the repository revision of the driver
     """
 
-    algo: str
-    kind: configs.AlgoKind
-    env_id: str
+    config: configs.ResolvedConfig
     seed: int
     budget: int
-    kwargs: dict[str, Any] = field(hash=False)
-    threshold: float
     eval_every: int
     n_eval_episodes: int = configs.N_EVAL_EPISODES
     stop_at_solve: bool = False
     protocol: str = "rounds"
-    source: str = ""
     command: str = ""
     git: str | None = None
+
+    @property
+    def threshold(self) -> float:
+        """:return: the env's solve threshold (mean greedy return)"""
+        return configs.ENVS[self.config.env_id].threshold
 
     @property
     def config_hash(self) -> str:
         """:return: a short hash of everything but the seed and budget that changes what the job measures"""
         payload: dict[str, Any] = {
-            "kind": self.kind,
-            "kwargs": self.kwargs,
+            "kind": self.config.kind,
+            "kwargs": self.config.kwargs,
             "threshold": self.threshold,
             "eval_every": self.eval_every,
             "n_eval_episodes": self.n_eval_episodes,
@@ -168,7 +168,10 @@ class Job:
     @property
     def key(self) -> Key:
         """:return: the resumability key (algo, env, seed, budget, config hash)"""
-        return (self.algo, self.env_id, self.seed, self.budget, self.config_hash)
+        return (self.config.algo, self.config.env_id, self.seed, self.budget, self.config_hash)
+
+    def __str__(self) -> str:
+        return f"{self.config.algo} {self.config.env_id} seed {self.seed}"
 
 
 def make_jobs(
@@ -197,37 +200,25 @@ def make_jobs(
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol must be one of {list(PROTOCOLS)}, got {protocol!r}")
     git = git_revision()
-    jobs = []
-    for algo in algos:
-        for env_id in envs:
-            config, spec = configs.resolve(algo, env_id), configs.ENVS[env_id]
-            jobs += [
-                Job(
-                    algo=algo,
-                    kind=config.kind,
-                    env_id=env_id,
-                    seed=seed,
-                    budget=budget if budget is not None else config.budget,
-                    kwargs=config.kwargs,
-                    threshold=spec.threshold,
-                    eval_every=eval_every if eval_every is not None else spec.eval_every,
-                    n_eval_episodes=n_eval_episodes,
-                    stop_at_solve=stop_at_solve or protocol == "book",
-                    protocol=protocol,
-                    source=config.source,
-                    command=command,
-                    git=git,
-                )
-                for seed in seeds
-            ]
-    return jobs
+    return [
+        Job(
+            config,
+            seed,
+            config.budget if budget is None else budget,
+            configs.ENVS[config.env_id].eval_every if eval_every is None else eval_every,
+            n_eval_episodes,
+            stop_at_solve or protocol == "book",
+            protocol,
+            command,
+            git,
+        )
+        for config in (configs.resolve(algo, env_id) for algo in algos for env_id in envs)
+        for seed in seeds
+    ]
 
 
 def read_results(path: Path) -> list[dict[str, Any]]:
-    """
-    :param path: a results file (JSON lines); missing means empty
-    :return: its records (a line that is not valid JSON, e.g. cut by a crash, is skipped with a warning)
-    """
+    """:return: the records of a results file (JSON lines; missing means empty; a line cut by a crash is skipped)"""
     records = []
     for number, line in enumerate(path.read_text().splitlines() if path.exists() else [], start=1):
         try:
@@ -247,24 +238,23 @@ def result_key(record: dict[str, Any]) -> Key:
 
 def make_env(env_id: str, n_envs: int, seed: int | None = None, normalize: dict[str, Any] | None = None) -> VecEnv:
     """
-    SB3's ``make_vec_env`` with no render mode (given an env id, SB3 asks for ``rgb_array``, and LunarLander then
-    simulates exhaust particles for drawing, which slows its steps without changing an observation).
+    SB3's ``make_vec_env`` with no render mode (SB3 asks for ``rgb_array``, which makes LunarLander draw particles).
 
     :param env_id: gymnasium env id
     :param n_envs: number of envs
     :param seed: seed of the first env (env ``i`` gets ``seed + i``)
     :param normalize: ``VecNormalize`` arguments, if the config normalises
-    :return: a ``DummyVecEnv`` of ``Monitor``-wrapped envs, in ``VecNormalize`` if asked
     """
     env = make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs={"render_mode": None})
     return env if normalize is None else VecNormalize(env, **normalize)
 
 
-class Evaluations:
+class Evaluations(BaseCallback):
     """
     The greedy evaluations of one job: ``n_episodes`` episodes with ``evaluate_policy`` on as many envs, episode
-    ``i`` from ``reset(seed=seed_base + i)`` at every evaluation. With a ``VecNormalize`` training env, the
-    evaluation env normalises observations with its statistics, synced before each evaluation and never updated.
+    ``i`` from ``reset(seed=seed_base + i)``; with ``VecNormalize``, the training env's statistics, never updated.
+    As an SB3 callback, it evaluates at rollout starts (for NFQ: right after the previous round's fit; SB3's
+    ``EvalCallback`` evaluates inside a round) and at the end of training, and counts the training episodes' ends.
 
     :param env_id: gymnasium env id
     :param n_episodes: episodes per evaluation
@@ -272,6 +262,7 @@ class Evaluations:
     :param eval_every: evaluate at the first call of :meth:`maybe_evaluate` at or after each multiple of this
     :param stop_at_solve: ask training to stop at the first solved evaluation
     :param normalize: the training env's ``VecNormalize`` arguments, if any
+    :param seed_base: the learning curve's first episode seed
     """
 
     def __init__(
@@ -282,48 +273,32 @@ class Evaluations:
         eval_every: int,
         stop_at_solve: bool,
         normalize: dict[str, Any] | None = None,
+        seed_base: int = CURVE_SEED_BASE,
     ) -> None:
+        super().__init__()
         eval_normalize = None if normalize is None else {**normalize, "training": False, "norm_reward": False}
         self.env = make_env(env_id, n_episodes, normalize=eval_normalize)
-        self.n_episodes, self.threshold = n_episodes, threshold
-        self.eval_every, self.stop_at_solve = eval_every, stop_at_solve
+        self.n_episodes, self.threshold, self.eval_every = n_episodes, threshold, eval_every
+        self.stop_at_solve, self.seed_base = stop_at_solve, seed_base
         self.curve: list[list[float]] = []
+        #: [steps, training episodes ended since the previous evaluation, how many of them by termination]
         self.episode_ends: list[list[int]] = []
         self.steps_to_solve: int | None = None
-        self.eval_seconds = 0.0
-        self.stopped = False
+        self.eval_seconds, self.stopped, self.keep_training = 0.0, False, True
         self._next_eval = self._ended = self._terminated = 0
 
-    def returns(self, model: Any, seed_base: int, train_env: VecEnv | None = None) -> np.ndarray:
-        """
-        :param model: what ``evaluate_policy`` plays (an SB3 model, or anything with SB3's ``predict``)
-        :param seed_base: seed of episode 0
-        :param train_env: the training env, whose normalisation statistics the evaluation uses
-        :return: the episodes' returns
-        """
-        if train_env is not None and isinstance(self.env, VecNormalize):
-            sync_envs_normalization(train_env, self.env)
+    def returns(self, model: Any, seed_base: int) -> np.ndarray:
+        """:return: the returns of ``model``'s greedy episodes, the first from ``reset(seed=seed_base)``"""
+        if isinstance(self.env, VecNormalize):
+            sync_envs_normalization(model.get_env(), self.env)
         self.env.seed(seed_base)
         returns, _ = evaluate_policy(model, self.env, self.n_episodes, deterministic=True, return_episode_rewards=True)
         return np.asarray(returns, dtype=float)
 
-    def count_episode_ends(self, dones: np.ndarray, infos: Sequence[dict[str, Any]]) -> None:
-        """:param dones: one training step's done flags :param infos: its infos"""
-        for done, info in zip(dones, infos, strict=True):
-            self._ended += int(done)
-            self._terminated += int(done and not info.get("TimeLimit.truncated", False))
-
-    def evaluate(self, steps: int, model: Any, seed_base: int, train_env: VecEnv | None = None) -> None:
-        """
-        Add a point to the learning curve.
-
-        :param steps: env steps trained so far
-        :param model: what ``evaluate_policy`` plays
-        :param seed_base: seed of episode 0
-        :param train_env: the training env, whose normalisation statistics the evaluation uses
-        """
+    def evaluate(self, steps: int, model: Any) -> None:
+        """Add a point to the learning curve: ``model`` after ``steps`` env steps."""
         start = time.perf_counter()
-        mean = float(np.mean(self.returns(model, seed_base, train_env)))
+        mean = float(np.mean(self.returns(model, self.seed_base)))
         self.eval_seconds += time.perf_counter() - start
         self.curve.append([steps, mean])
         self.episode_ends.append([steps, self._ended, self._terminated])
@@ -332,47 +307,29 @@ class Evaluations:
         if mean >= self.threshold and self.steps_to_solve is None:
             self.steps_to_solve = steps
 
-    def maybe_evaluate(self, steps: int, model: Any, seed_base: int, train_env: VecEnv | None = None) -> bool:
-        """
-        Evaluate if a multiple of ``eval_every`` was reached (see :meth:`evaluate` for the parameters).
-
-        :return: whether training should go on
-        """
+    def maybe_evaluate(self, steps: int, model: Any) -> bool:
+        """Evaluate if a multiple of ``eval_every`` was reached. :return: whether training should go on"""
         if steps >= self._next_eval:
-            self.evaluate(steps, model, seed_base, train_env)
+            self.evaluate(steps, model)
         self.stopped = self.stop_at_solve and self.steps_to_solve is not None
         return not self.stopped
 
-    def finish(self, steps: int, model: Any, seed_base: int, train_env: VecEnv | None = None) -> None:
+    def finish(self, steps: int, model: Any) -> None:
         """Evaluate the final policy unless it was just evaluated or training stopped at the solve."""
         if not self.stopped and (not self.curve or self.curve[-1][0] != steps):
-            self.evaluate(steps, model, seed_base, train_env)
-
-
-class RoundEndEvaluation(BaseCallback):
-    """
-    Evaluates at rollout starts (for NFQ: right after the previous round's fit; SB3's ``EvalCallback`` evaluates
-    every ``eval_freq`` steps, inside a round) and at the end of training; counts the training episodes' ends.
-
-    :param evaluations: the job's evaluations
-    :param seed_base: the evaluation episodes' first seed
-    """
-
-    def __init__(self, evaluations: Evaluations, seed_base: int) -> None:
-        super().__init__()
-        self.evaluations, self.seed_base, self.keep_training = evaluations, seed_base, True
+            self.evaluate(steps, model)
 
     def _on_rollout_start(self) -> None:
-        self.keep_training = self.evaluations.maybe_evaluate(
-            self.num_timesteps, self.model, self.seed_base, self.model.get_env()
-        )
+        self.keep_training = self.maybe_evaluate(self.num_timesteps, self.model)
 
     def _on_step(self) -> bool:
-        self.evaluations.count_episode_ends(self.locals["dones"], self.locals["infos"])
+        for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
+            self._ended += int(done)
+            self._terminated += int(done and not info.get("TimeLimit.truncated", False))
         return self.keep_training
 
     def _on_training_end(self) -> None:
-        self.evaluations.finish(self.num_timesteps, self.model, self.seed_base, self.model.get_env())
+        self.finish(self.num_timesteps, self.model)
 
 
 # --- training ---------------------------------------------------------------------------------------------------
@@ -381,93 +338,79 @@ class RoundEndEvaluation(BaseCallback):
 def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
     """
     :param job: an NFQ, DQN or QR-DQN job
-    :return: its model on its training envs (``VecNormalize`` where the config's ``normalize`` asks, as the RL Zoo
-        does) and the callbacks its config asks for (``keep_best``: ``sb3_nfq.KeepBestCallback``)
+    :return: its model on its training envs (``VecNormalize`` where ``normalize`` asks, as the RL Zoo does) and the
+        callbacks its config asks for (``keep_best``: ``sb3_nfq.KeepBestCallback``)
     """
     from sb3_contrib import QRDQN
     from stable_baselines3 import DQN
 
-    from sb3_nfq import NFQ
+    from sb3_nfq import NFQ, KeepBestCallback
 
-    kwargs = dict(job.kwargs)
+    kwargs = dict(job.config.kwargs)
     n_envs, policy = int(kwargs.pop("n_envs", 1)), kwargs.pop("policy", "MlpPolicy")
     normalize = vec_normalize_kwargs(kwargs.pop("normalize", False), kwargs.get("gamma"))
-    callbacks: list[BaseCallback] = []
-    if kwargs.pop("keep_best", False):
-        from sb3_nfq import KeepBestCallback
-
-        callbacks.append(KeepBestCallback())
-    algorithm_class: Any = {"nfq": NFQ, "dqn": DQN, "qrdqn": QRDQN}[job.kind]
-    env = make_env(job.env_id, n_envs, job.seed, normalize)
+    callbacks: list[BaseCallback] = [KeepBestCallback()] if kwargs.pop("keep_best", False) else []
+    algorithm_class: Any = {"nfq": NFQ, "dqn": DQN, "qrdqn": QRDQN}[job.config.kind]
+    env = make_env(job.config.env_id, n_envs, job.seed, normalize)
     return algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs)), callbacks
 
 
-def _effective(model: Any) -> dict[str, Any]:
-    names = ["learning_rate", "gamma", "batch_size", "buffer_size", "learning_starts", "train_freq"]
-    names += ["gradient_steps", "target_update_interval", "exploration_initial_eps", "exploration_final_eps"]
-    names += ["exploration_fraction", "loss", "max_grad_norm", "n_envs"]
-    effective = {
-        name: json.loads(json.dumps(getattr(model, name), default=repr)) for name in names if hasattr(model, name)
-    }
-    effective["policy"] = type(model.policy).__name__
-    effective["net_arch"] = getattr(model.policy, "net_arch", None)
-    effective["optimizer"] = type(model.policy.optimizer).__name__
-    return effective
+def effective_hyperparams(model: Any) -> dict[str, Any]:
+    """:return: the settings the trained model ran with, as plain data"""
+    if not hasattr(model, "policy"):  # the reference
+        effective = {name: getattr(model, name) for name in ("gamma", "epsilon", "transitions_per_round")}
+        effective |= {"fitting_iterations": model.fitting_iterations}
+        effective |= {"learning_rate": model.optimizer.param_groups[0]["lr"], "optimizer": "RMSprop"}
+        return {**effective, "q_net": str(model.q_net).replace("\n", "")}
+    names = (
+        "learning_rate gamma batch_size buffer_size learning_starts train_freq gradient_steps target_update_interval"
+    )
+    names += " exploration_initial_eps exploration_final_eps exploration_fraction loss max_grad_norm n_envs"
+    effective = {n: json.loads(json.dumps(getattr(model, n), default=repr)) for n in names.split() if hasattr(model, n)}
+    effective |= {"policy": type(model.policy).__name__, "net_arch": getattr(model.policy, "net_arch", None)}
+    effective |= {"optimizer": type(model.policy.optimizer).__name__}
+    return {**effective, "q_net": str(model.policy).replace("\n", "")}
 
 
-def train(job: Job, tracker: Evaluations | StopTrainingOnBookCriterion, curve_seed: int) -> tuple[Any, dict[str, Any]]:
+def train(job: Job, tracker: BaseCallback) -> tuple[Any, str | None]:
     """
     :param job: the job
-    :param tracker: its evaluations (``--protocol rounds``) or the book's criterion
-    :param curve_seed: the first seed of the learning curve's evaluation episodes
-    :return: the trained model (what ``evaluate_policy`` plays) and a record of its training
+    :param tracker: its :class:`Evaluations` (``--protocol rounds``) or the book's criterion
+    :return: the trained model (what ``evaluate_policy`` plays) and the divergence error, if training diverged
     """
     from benchmarks.reference_nfq import ReferenceNFQ
     from sb3_nfq import NFQDivergenceError
 
-    diverged, start = None, time.perf_counter()
-    if job.kind == "reference":
-        model: Any = ReferenceNFQ(job.env_id, seed=job.seed, **job.kwargs)
+    if job.config.kind == "reference":
+        model: Any = ReferenceNFQ(job.config.env_id, seed=job.seed, **job.config.kwargs)
         if isinstance(tracker, StopTrainingOnBookCriterion):
+            criterion = tracker.criterion
 
             def after_episode(agent: ReferenceNFQ) -> bool:
-                def greedy(observation: np.ndarray) -> int:
-                    return int(agent.act(observation[None])[0])
-
-                return not tracker.criterion.on_training_episode_end(agent.num_timesteps, greedy)
+                return not criterion.on_training_episode_end(agent.num_timesteps, lambda o: int(agent.act(o[None])[0]))
 
             model.learn(job.budget, episode_callback=after_episode)
-        else:  # evaluated at step 0, as SB3's learn() does at its first rollout start
-            tracker.maybe_evaluate(0, model, curve_seed)
-            model.learn(
-                job.budget, callback=lambda agent: tracker.maybe_evaluate(agent.num_timesteps, agent, curve_seed)
-            )
-            tracker.finish(model.num_timesteps, model, curve_seed)
-        names = ("gamma", "epsilon", "transitions_per_round", "fitting_iterations")
-        effective = {name: getattr(model, name) for name in names}
-        effective |= {"learning_rate": model.optimizer.param_groups[0]["lr"], "optimizer": "RMSprop"}
-    else:
-        model, callbacks = build_sb3_model(job)
-        evaluation = (
-            tracker if isinstance(tracker, StopTrainingOnBookCriterion) else RoundEndEvaluation(tracker, curve_seed)
-        )
-        try:  # keep_best restores its weights before the last evaluation, at the end of learn()
-            model.learn(job.budget, callback=CallbackList([*callbacks, evaluation]))
-        except NFQDivergenceError as error:  # a result like any other: recorded, not retried
-            diverged = str(error)
-        effective = _effective(model)
-    effective["q_net"] = str(model.q_net if job.kind == "reference" else model.policy).replace("\n", "")
-    trained = {"steps_trained": model.num_timesteps, "diverged": diverged}
-    return model, {**trained, "learn_seconds": time.perf_counter() - start, "effective_hyperparams": effective}
+        elif isinstance(tracker, Evaluations):  # evaluated at step 0, as SB3's learn() does at its first rollout start
+            tracker.maybe_evaluate(0, model)
+            model.learn(job.budget, callback=lambda agent: tracker.maybe_evaluate(agent.num_timesteps, agent))
+            tracker.finish(model.num_timesteps, model)
+        return model, None
+    model, callbacks = build_sb3_model(job)
+    try:  # keep_best restores its weights before the last evaluation, at the end of learn()
+        model.learn(job.budget, callback=CallbackList([*callbacks, tracker]))
+    except NFQDivergenceError as error:  # a result like any other: recorded, not retried
+        return model, str(error)
+    return model, None
 
 
-def book_curve(callback: StopTrainingOnBookCriterion, every: int) -> list[list[float]]:
+def book_curve(criterion: BookCriterion, every: int) -> list[list[float]]:
     """
-    :param callback: the book protocol's evaluations of one job
+    :param criterion: the book protocol's evaluations of one job
     :param every: keep the first evaluation at or after each multiple of this many env steps, and the last
     :return: ``[steps, mean of the last BOOK_WINDOW evaluation returns]`` at those evaluations
     """
-    criterion, curve, next_point = callback.criterion, [], 0
+    curve: list[list[float]] = []
+    next_point = 0
     for index, steps in enumerate(criterion.evaluation_steps):
         if steps >= next_point or index == len(criterion.evaluation_steps) - 1:
             window = criterion.evaluation_returns[max(0, index + 1 - criterion.window) : index + 1]
@@ -477,28 +420,33 @@ def book_curve(callback: StopTrainingOnBookCriterion, every: int) -> list[list[f
 
 
 def run_job(job: Job) -> dict[str, Any]:
-    """
-    Train one job and evaluate it, with one torch thread. Top-level, so that worker processes and Ray tasks can run it.
-
-    :param job: the job
-    :return: its result record (one JSON line)
-    """
+    """Train one job and evaluate it, with one torch thread. :return: its result record (one JSON line)"""
     wall_start = time.perf_counter()
     th.set_num_threads(1)
-    curve_seed, final_seed = CURVE_SEED_BASE + 1000 * job.seed, FINAL_SEED_BASE + 1000 * job.seed
-    normalize = vec_normalize_kwargs(job.kwargs.get("normalize", False), job.kwargs.get("gamma"))
+    config, curve_seed, final_seed = job.config, CURVE_SEED_BASE + 1000 * job.seed, FINAL_SEED_BASE + 1000 * job.seed
+    normalize = vec_normalize_kwargs(config.kwargs.get("normalize", False), config.kwargs.get("gamma"))
     evaluations = Evaluations(
-        job.env_id, job.n_eval_episodes, job.threshold, job.eval_every, job.stop_at_solve, normalize
+        config.env_id, job.n_eval_episodes, job.threshold, job.eval_every, job.stop_at_solve, normalize, curve_seed
     )
-    tracker: Evaluations | StopTrainingOnBookCriterion = evaluations
-    if job.protocol == "book":
-        tracker = StopTrainingOnBookCriterion(gym.make(job.env_id), job.threshold, BOOK_WINDOW, seed=curve_seed)
-    model, trained = train(job, tracker, curve_seed)
-    train_env = model.get_env() if job.kind != "reference" else None
-    final_returns = evaluations.returns(model, final_seed, train_env)
-    if isinstance(tracker, StopTrainingOnBookCriterion):
-        criterion = tracker.criterion
-        outcome: dict[str, Any] = {
+    book = (
+        StopTrainingOnBookCriterion(config.env_id, job.threshold, BOOK_WINDOW, seed=curve_seed)
+        if job.protocol == "book"
+        else None
+    )
+    start = time.perf_counter()
+    model, diverged = train(job, book or evaluations)
+    learn_seconds = time.perf_counter() - start
+    final_returns = evaluations.returns(model, final_seed)
+    outcome: dict[str, Any] = {
+        "solved": evaluations.steps_to_solve is not None,
+        "steps_to_solve": evaluations.steps_to_solve,
+        "stopped_at_solve": evaluations.stopped,
+        "train_episode_ends": evaluations.episode_ends if config.kind != "reference" else None,
+    }
+    eval_seconds, curve = evaluations.eval_seconds, evaluations.curve
+    if book is not None:
+        criterion = book.criterion
+        outcome = {
             "protocol": "book",
             "book_window": criterion.window,
             "solved": criterion.solved,
@@ -507,38 +455,29 @@ def run_job(job: Job) -> dict[str, Any]:
             "episodes_trained": len(criterion.evaluation_returns),
             "stopped_at_solve": criterion.solved,
         }
-        eval_seconds, curve = criterion.eval_seconds, book_curve(tracker, job.eval_every)
-    else:
-        outcome = {
-            "solved": evaluations.steps_to_solve is not None,
-            "steps_to_solve": evaluations.steps_to_solve,
-            "stopped_at_solve": evaluations.stopped,
-            # [steps, training episodes ended since the previous evaluation, how many of them by termination]
-            "train_episode_ends": evaluations.episode_ends if job.kind != "reference" else None,
-        }
-        eval_seconds, curve = evaluations.eval_seconds, evaluations.curve
+        eval_seconds, curve = criterion.eval_seconds, book_curve(criterion, job.eval_every)
     return {
-        "algo": job.algo,
-        "env": job.env_id,
+        "algo": config.algo,
+        "env": config.env_id,
         "seed": job.seed,
         "budget": job.budget,
         "config_hash": job.config_hash,
-        "kind": job.kind,
-        "config": job.kwargs,
-        "config_source": job.source,
-        "effective_hyperparams": trained["effective_hyperparams"],
+        "kind": config.kind,
+        "config": config.kwargs,
+        "config_source": config.source,
+        "effective_hyperparams": effective_hyperparams(model),
         "threshold": job.threshold,
         "n_eval_episodes": job.n_eval_episodes,
         "eval_every": job.eval_every,
         "eval_seeds": {"curve": curve_seed, "final": final_seed},
         "stop_at_solve": job.stop_at_solve,
         **outcome,
-        "steps_trained": trained["steps_trained"],
-        "diverged": trained["diverged"],
+        "steps_trained": model.num_timesteps,
+        "diverged": diverged,
         "final_score": float(np.mean(final_returns)),
         "final_score_std": float(np.std(final_returns)),
         "final_n_episodes": len(final_returns),
-        "train_seconds": round(trained["learn_seconds"] - eval_seconds, 3),
+        "train_seconds": round(learn_seconds - eval_seconds, 3),
         "eval_seconds": round(eval_seconds, 3),
         "wall_seconds": round(time.perf_counter() - wall_start, 3),
         "curve": [[int(steps), round(mean, 3)] for steps, mean in curve],
@@ -558,8 +497,8 @@ def run_job(job: Job) -> dict[str, Any]:
 
 def exit_with_parent(parent: int) -> None:
     """
-    Pool-worker initializer: end this worker once the runner is gone (a runner killed by a signal runs no
-    ``finally`` and would leave its workers training, competing for the cores with the next command's jobs).
+    Pool-worker initializer: end this worker once the runner is gone (a runner killed by a signal would leave its
+    workers training, competing for the cores with the next command's jobs).
 
     :param parent: the runner's pid (passed in: the runner may be gone before a starting worker has imported)
     """
@@ -572,73 +511,39 @@ def exit_with_parent(parent: int) -> None:
     threading.Thread(target=watch, daemon=True).start()
 
 
-OnResult = Callable[[Job, dict[str, Any]], None]
-
-
-def _run_local(jobs: Sequence[Job], workers: int, on_result: OnResult) -> int:
-    if workers == 0:  # in this process, one after the other (debugging, tests)
-        results = []
-        for job in jobs:
-            try:
-                results.append((job, run_job(job)))
-            except Exception:
-                print(f"FAILED {job.algo} {job.env_id} seed {job.seed}:\n{traceback.format_exc()}", file=sys.stderr)
-            else:
-                on_result(*results[-1])
-        return len(jobs) - len(results)
-    failures = 0
-    context = multiprocessing.get_context("spawn")  # a fresh process per job: no state leaks between jobs
-    with concurrent.futures.ProcessPoolExecutor(
-        workers, mp_context=context, initializer=exit_with_parent, initargs=(os.getpid(),), max_tasks_per_child=1
-    ) as pool:
-        futures = {pool.submit(run_job, job): job for job in jobs}
-        for future in concurrent.futures.as_completed(futures):
-            try:
-                on_result(futures[future], future.result())
-            except Exception as error:
-                failures += 1
-                job = futures[future]
-                print(f"FAILED {job.algo} {job.env_id} seed {job.seed}: {error!r}", file=sys.stderr)
-    return failures
-
-
-def _run_ray(jobs: Sequence[Job], address: str, workers: int, on_result: OnResult) -> int:
-    try:
-        import ray
-    except ImportError as error:
-        raise SystemExit(
-            "--ray-address needs Ray: the dev group of pyproject.toml, or pip install 'ray>=2.9'"
-        ) from error
-    started_here = not ray.is_initialized()
-    if started_here:  # ship this checkout's code to the workers (the nodes need the packages installed)
-        runtime_env = {"py_modules": [str(REPO_ROOT / "benchmarks"), str(REPO_ROOT / "sb3_nfq")]}
-        if address == "local":
-            ray.init(num_cpus=max(workers, 1), include_dashboard=False, runtime_env=runtime_env)
-        else:
-            ray.init(address=address, runtime_env=runtime_env)
-    failures = 0
-    try:
-        remote = ray.remote(num_cpus=1, max_retries=0, max_calls=1)(run_job)  # a fresh process per job
-        pending = {remote.remote(job): job for job in jobs}
-        while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
-            job = pending.pop(done[0])
-            try:
-                on_result(job, ray.get(done[0]))
-            except Exception as error:
-                failures += 1
-                print(f"FAILED {job.algo} {job.env_id} seed {job.seed}: {error!r}", file=sys.stderr)
-    finally:
-        if started_here:
-            ray.shutdown()
-    return failures
-
-
-def launcher(workers: int, ray_address: str | None = None) -> str:
-    """:return: how the jobs ran, as recorded in each result line's ``launcher``"""
+def submit(jobs: Sequence[Job], workers: int, ray_address: str | None, stack: contextlib.ExitStack) -> dict[Any, Job]:
+    """
+    :param jobs: the jobs
+    :param workers: local worker processes (0: one job after the other in this process)
+    :param ray_address: run the jobs as Ray tasks (``num_cpus=1``) on this cluster instead
+    :param stack: where what has to be shut down afterwards goes
+    :return: a future of each job's record
+    """
     if ray_address:
-        return f"ray ({ray_address})"
-    return f"local pool ({workers} spawned workers)" if workers else "in-process"
+        try:
+            import ray
+        except ImportError as error:
+            raise SystemExit(
+                "--ray-address needs Ray: the dev group of pyproject.toml, or pip install 'ray>=2.9'"
+            ) from error
+        if not ray.is_initialized():  # ship this checkout's code to the workers (the nodes need the packages installed)
+            runtime_env = {"py_modules": [str(REPO_ROOT / "benchmarks"), str(REPO_ROOT / "sb3_nfq")]}
+            if ray_address == "local":
+                ray.init(num_cpus=max(workers, 1), include_dashboard=False, runtime_env=runtime_env)
+            else:
+                ray.init(address=ray_address, runtime_env=runtime_env)
+            stack.callback(ray.shutdown)
+        remote = ray.remote(num_cpus=1, max_retries=0, max_calls=1)(run_job)  # a fresh process per job
+        return {remote.remote(job).future(): job for job in jobs}
+    if workers == 0:  # one after the other in this process (debugging, tests)
+        pool: concurrent.futures.Executor = concurrent.futures.ThreadPoolExecutor(1)
+    else:  # a fresh process per job: no state leaks between jobs
+        context = multiprocessing.get_context("spawn")
+        pool = concurrent.futures.ProcessPoolExecutor(
+            workers, mp_context=context, initializer=exit_with_parent, initargs=(os.getpid(),), max_tasks_per_child=1
+        )
+    stack.enter_context(pool)
+    return {pool.submit(run_job, job): job for job in jobs}
 
 
 def done_keys(results: Path, jobs: Sequence[Job], rerun: bool = False) -> set[Key]:
@@ -666,33 +571,32 @@ def run_jobs(
         print(f"warning: {workers} workers on {usable_cores()} cores would distort timings", file=sys.stderr)
         workers = usable_cores()
     print(f"{len(jobs)} jobs: {len(jobs) - len(todo)} already in {results}, {len(todo)} to run")
-    finished = 0
-
-    def on_result(job: Job, record: dict[str, Any]) -> None:
-        nonlocal finished
-        record["launcher"] = launcher(workers, ray_address)
-        results.parent.mkdir(parents=True, exist_ok=True)
-        with results.open("a") as file:
-            file.write(json.dumps(record) + "\n")
-        finished += 1
-        solved = f"solved at {record['steps_to_solve']}" if record["solved"] else "not solved"
-        print(
-            f"[{finished}/{len(todo)}] {job.algo} {job.env_id} seed {job.seed}: {solved}, final "
-            f"{record['final_score']:.1f}, train {record['train_seconds']:.1f}s",
-            flush=True,
-        )
-
-    if not todo:
-        return 0, len(jobs), 0
-    failures = _run_ray(todo, ray_address, workers, on_result) if ray_address else _run_local(todo, workers, on_result)
+    finished = failures = 0
+    pool = f"local pool ({workers} spawned workers)" if workers else "in-process"
+    launched = f"ray ({ray_address})" if ray_address else pool
+    with contextlib.ExitStack() as stack:
+        futures = submit(todo, workers, ray_address, stack) if todo else {}
+        for future in concurrent.futures.as_completed(futures):
+            job = futures[future]
+            try:
+                record = future.result()
+            except Exception as error:
+                failures += 1
+                print(f"FAILED {job}: {''.join(traceback.format_exception(error))}", file=sys.stderr)
+                continue
+            record["launcher"] = launched
+            results.parent.mkdir(parents=True, exist_ok=True)
+            with results.open("a") as file:
+                file.write(json.dumps(record) + "\n")
+            finished += 1
+            solved = f"solved at {record['steps_to_solve']}" if record["solved"] else "not solved"
+            score, seconds = record["final_score"], record["train_seconds"]
+            print(f"[{finished}/{len(todo)}] {job}: {solved}, final {score:.1f}, train {seconds:.1f}s", flush=True)
     return finished, len(jobs) - len(todo), failures
 
 
 def parse_seeds(values: Iterable[str]) -> list[int]:
-    """
-    :param values: seeds and ranges, e.g. ``["0-4"]`` or ``["0", "3", "7-9"]``
-    :return: the seeds, in order, without duplicates
-    """
+    """:return: the seeds of ``values`` such as ``["0-4"]`` or ``["0", "3,7-9"]``, in order, without duplicates"""
     seeds: list[int] = []
     for part in (part for value in values for part in value.split(",") if part):
         low, _, high = part.partition("-")
@@ -701,16 +605,12 @@ def parse_seeds(values: Iterable[str]) -> list[int]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """
-    :param argv: arguments (default: ``sys.argv[1:]``)
-    :return: exit status (1 if a job failed)
-    """
+    """:param argv: arguments (default: ``sys.argv[1:]``) :return: exit status (1 if a job failed)"""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    names = configs.algorithm_names()
+    names, seeds = configs.algorithm_names(), f"{configs.SEEDS[0]}-{configs.SEEDS[-1]}"
     parser.add_argument("--algos", nargs="+", default=names, choices=names)
     parser.add_argument("--envs", nargs="+", default=list(configs.ENVS), choices=list(configs.ENVS))
-    seeds = f"{configs.SEEDS[0]}-{configs.SEEDS[-1]}"
     parser.add_argument("--seeds", nargs="+", default=[seeds], help=f"seeds or ranges (default {seeds})")
     parser.add_argument("--budget", type=int, help="env-step budget of every job (default: per config and env)")
     parser.add_argument("--eval-every", type=int, help="evaluation period in env steps (default: per env)")
@@ -726,22 +626,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.workers < 0:
         parser.error(f"--workers must be >= 0, got {args.workers}")
     results = args.results or (DEFAULT_BOOK_RESULTS if args.protocol == "book" else DEFAULT_RESULTS)
+    command = relative_command("benchmarks.run", argv)
     jobs = make_jobs(
-        args.algos,
-        args.envs,
-        parse_seeds(args.seeds),
-        args.budget,
-        args.eval_every,
-        args.eval_episodes,
-        args.stop_at_solve,
-        relative_command("benchmarks.run", argv),
-        args.protocol,
-    )
+        args.algos, args.envs, parse_seeds(args.seeds), args.budget, args.eval_every, args.eval_episodes,
+        args.stop_at_solve, command, args.protocol,
+    )  # fmt: skip
     if args.dry_run:
         done = done_keys(results, jobs, args.rerun)
         for job in jobs:
-            state = "done" if job.key in done else "todo"
-            print(f"{state} {job.algo} {job.env_id} seed={job.seed} budget={job.budget} config={job.config_hash}")
+            algo, env_id, seed, budget, config_hash = job.key
+            print(
+                "done" if job.key in done else "todo", algo, env_id, f"seed={seed} budget={budget} config={config_hash}"
+            )
         return 0
     print(f"machine: {machine_line()}; torch threads per job: 1")
     return 1 if run_jobs(jobs, results, args.workers, args.ray_address, args.rerun)[2] else 0

@@ -623,7 +623,7 @@ def build_report(
         "",
         "Code revision(s): " + ", ".join(f"`{rev}`" for rev in _unique(records, "git")),
         "",
-        "Criterion, timing and record fields: [benchmarks/README.md](../README.md#what-is-measured). Runs marked "
+        "Criterion, timing and record fields: `benchmarks/README.md`, section What is measured. Runs marked "
         "(stopped at solve) ran with `--stop-at-solve`: their final score is taken at the solve. A run whose loss "
         "became non-finite (`NFQDivergenceError`) counts as unsolved unless it had solved before. Unsolved runs count "
         "as the steps they trained: a value marked ≥ is a lower bound. IQM 95% CIs: rliable "

@@ -35,11 +35,11 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize, sync_envs_normalization
+from stable_baselines3.common.vec_env import VecEnv
 
 from benchmarks import configs
 from sb3_nfq.callbacks import BookCriterion, StopTrainingOnBookCriterion
-from sb3_nfq.configs import vec_normalize_kwargs, zoo_to_kwargs
+from sb3_nfq.configs import zoo_to_kwargs
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_RESULTS = REPO_ROOT / "benchmarks" / "results" / "runs.jsonl"
@@ -236,32 +236,29 @@ def result_key(record: dict[str, Any]) -> Key:
 # --- evaluation -------------------------------------------------------------------------------------------------
 
 
-def make_env(env_id: str, n_envs: int, seed: int | None = None, normalize: dict[str, Any] | None = None) -> VecEnv:
+def make_env(env_id: str, n_envs: int, seed: int | None = None) -> VecEnv:
     """
     SB3's ``make_vec_env`` with no render mode (SB3 asks for ``rgb_array``, which makes LunarLander draw particles).
 
     :param env_id: gymnasium env id
     :param n_envs: number of envs
     :param seed: seed of the first env (env ``i`` gets ``seed + i``)
-    :param normalize: ``VecNormalize`` arguments, if the config normalises
     """
-    env = make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs={"render_mode": None})
-    return env if normalize is None else VecNormalize(env, **normalize)
+    return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs={"render_mode": None})
 
 
 class Evaluations(BaseCallback):
     """
     The greedy evaluations of one job: ``n_episodes`` episodes with ``evaluate_policy`` on as many envs, episode
-    ``i`` from ``reset(seed=seed_base + i)``; with ``VecNormalize``, the training env's statistics, never updated.
-    As an SB3 callback, it evaluates at rollout starts (for NFQ: right after the previous round's fit; SB3's
-    ``EvalCallback`` evaluates inside a round) and at the end of training, and counts the training episodes' ends.
+    ``i`` from ``reset(seed=seed_base + i)``. As an SB3 callback, it evaluates at rollout starts (for NFQ: right after
+    the previous round's fit; SB3's ``EvalCallback`` evaluates inside a round) and at the end of training, and counts
+    the training episodes' ends.
 
     :param env_id: gymnasium env id
     :param n_episodes: episodes per evaluation
     :param threshold: solved when the mean return reaches this
     :param eval_every: evaluate at the first call of :meth:`maybe_evaluate` at or after each multiple of this
     :param stop_at_solve: ask training to stop at the first solved evaluation
-    :param normalize: the training env's ``VecNormalize`` arguments, if any
     :param seed_base: the learning curve's first episode seed
     """
 
@@ -272,12 +269,10 @@ class Evaluations(BaseCallback):
         threshold: float,
         eval_every: int,
         stop_at_solve: bool,
-        normalize: dict[str, Any] | None = None,
         seed_base: int = CURVE_SEED_BASE,
     ) -> None:
         super().__init__()
-        eval_normalize = None if normalize is None else {**normalize, "training": False, "norm_reward": False}
-        self.env = make_env(env_id, n_episodes, normalize=eval_normalize)
+        self.env = make_env(env_id, n_episodes)
         self.n_episodes, self.threshold, self.eval_every = n_episodes, threshold, eval_every
         self.stop_at_solve, self.seed_base = stop_at_solve, seed_base
         self.curve: list[list[float]] = []
@@ -289,8 +284,6 @@ class Evaluations(BaseCallback):
 
     def returns(self, model: Any, seed_base: int) -> np.ndarray:
         """:return: the returns of ``model``'s greedy episodes, the first from ``reset(seed=seed_base)``"""
-        if isinstance(self.env, VecNormalize):
-            sync_envs_normalization(model.get_env(), self.env)
         self.env.seed(seed_base)
         returns, _ = evaluate_policy(model, self.env, self.n_episodes, deterministic=True, return_episode_rewards=True)
         return np.asarray(returns, dtype=float)
@@ -338,8 +331,8 @@ class Evaluations(BaseCallback):
 def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
     """
     :param job: an NFQ, DQN or QR-DQN job
-    :return: its model on its training envs (``VecNormalize`` where ``normalize`` asks, as the RL Zoo does) and the
-        callbacks its config asks for (``keep_best``: ``sb3_nfq.KeepBestCallback``)
+    :return: its model on its training envs and the callbacks its config asks for (``keep_best``:
+        ``sb3_nfq.KeepBestCallback``)
     """
     from sb3_contrib import QRDQN
     from stable_baselines3 import DQN
@@ -348,10 +341,9 @@ def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
 
     kwargs = dict(job.config.kwargs)
     n_envs, policy = int(kwargs.pop("n_envs", 1)), kwargs.pop("policy", "MlpPolicy")
-    normalize = vec_normalize_kwargs(kwargs.pop("normalize", False), kwargs.get("gamma"))
     callbacks: list[BaseCallback] = [KeepBestCallback()] if kwargs.pop("keep_best", False) else []
     algorithm_class: Any = {"nfq": NFQ, "dqn": DQN, "qrdqn": QRDQN}[job.config.kind]
-    env = make_env(job.config.env_id, n_envs, job.seed, normalize)
+    env = make_env(job.config.env_id, n_envs, job.seed)
     return algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs)), callbacks
 
 
@@ -424,9 +416,8 @@ def run_job(job: Job) -> dict[str, Any]:
     wall_start = time.perf_counter()
     th.set_num_threads(1)
     config, curve_seed, final_seed = job.config, CURVE_SEED_BASE + 1000 * job.seed, FINAL_SEED_BASE + 1000 * job.seed
-    normalize = vec_normalize_kwargs(config.kwargs.get("normalize", False), config.kwargs.get("gamma"))
     evaluations = Evaluations(
-        config.env_id, job.n_eval_episodes, job.threshold, job.eval_every, job.stop_at_solve, normalize, curve_seed
+        config.env_id, job.n_eval_episodes, job.threshold, job.eval_every, job.stop_at_solve, curve_seed
     )
     book = (
         StopTrainingOnBookCriterion(config.env_id, job.threshold, BOOK_WINDOW, seed=curve_seed)

@@ -249,32 +249,19 @@ def make_env(env_id: str, n_envs: int, seed: int | None = None) -> VecEnv:
 
 class Evaluations(BaseCallback):
     """
-    The greedy evaluations of one job: ``n_episodes`` episodes with ``evaluate_policy`` on as many envs, episode
-    ``i`` from ``reset(seed=seed_base + i)``. As an SB3 callback, it evaluates at rollout starts (for NFQ: right after
-    the previous round's fit; SB3's ``EvalCallback`` evaluates inside a round) and at the end of training, and counts
-    the training episodes' ends.
+    The greedy evaluations of one job: ``n_eval_episodes`` episodes with ``evaluate_policy`` on as many envs, episode
+    ``i`` from ``reset(seed=seed_base + i)``, at the first call of :meth:`maybe_evaluate` at or after each multiple of
+    ``eval_every``. As an SB3 callback, it evaluates at rollout starts (for NFQ: right after the previous round's fit;
+    SB3's ``EvalCallback`` evaluates inside a round) and at the end of training, and counts the training episodes'
+    ends.
 
-    :param env_id: gymnasium env id
-    :param n_episodes: episodes per evaluation
-    :param threshold: solved when the mean return reaches this
-    :param eval_every: evaluate at the first call of :meth:`maybe_evaluate` at or after each multiple of this
-    :param stop_at_solve: ask training to stop at the first solved evaluation
+    :param job: the job (env, episodes per evaluation, threshold, evaluation period, whether to stop at the solve)
     :param seed_base: the learning curve's first episode seed
     """
 
-    def __init__(
-        self,
-        env_id: str,
-        n_episodes: int,
-        threshold: float,
-        eval_every: int,
-        stop_at_solve: bool,
-        seed_base: int = CURVE_SEED_BASE,
-    ) -> None:
+    def __init__(self, job: Job, seed_base: int) -> None:
         super().__init__()
-        self.env = make_env(env_id, n_episodes)
-        self.n_episodes, self.threshold, self.eval_every = n_episodes, threshold, eval_every
-        self.stop_at_solve, self.seed_base = stop_at_solve, seed_base
+        self.job, self.seed_base, self.env = job, seed_base, make_env(job.config.env_id, job.n_eval_episodes)
         self.curve: list[list[float]] = []
         #: [steps, training episodes ended since the previous evaluation, how many of them by termination]
         self.episode_ends: list[list[int]] = []
@@ -285,7 +272,8 @@ class Evaluations(BaseCallback):
     def returns(self, model: Any, seed_base: int) -> np.ndarray:
         """:return: the returns of ``model``'s greedy episodes, the first from ``reset(seed=seed_base)``"""
         self.env.seed(seed_base)
-        returns, _ = evaluate_policy(model, self.env, self.n_episodes, deterministic=True, return_episode_rewards=True)
+        n_episodes = self.job.n_eval_episodes
+        returns, _ = evaluate_policy(model, self.env, n_episodes, deterministic=True, return_episode_rewards=True)
         return np.asarray(returns, dtype=float)
 
     def evaluate(self, steps: int, model: Any) -> None:
@@ -296,15 +284,15 @@ class Evaluations(BaseCallback):
         self.curve.append([steps, mean])
         self.episode_ends.append([steps, self._ended, self._terminated])
         self._ended = self._terminated = 0
-        self._next_eval = (steps // self.eval_every + 1) * self.eval_every
-        if mean >= self.threshold and self.steps_to_solve is None:
+        self._next_eval = (steps // self.job.eval_every + 1) * self.job.eval_every
+        if mean >= self.job.threshold and self.steps_to_solve is None:
             self.steps_to_solve = steps
 
     def maybe_evaluate(self, steps: int, model: Any) -> bool:
         """Evaluate if a multiple of ``eval_every`` was reached. :return: whether training should go on"""
         if steps >= self._next_eval:
             self.evaluate(steps, model)
-        self.stopped = self.stop_at_solve and self.steps_to_solve is not None
+        self.stopped = self.job.stop_at_solve and self.steps_to_solve is not None
         return not self.stopped
 
     def finish(self, steps: int, model: Any) -> None:
@@ -416,9 +404,7 @@ def run_job(job: Job) -> dict[str, Any]:
     wall_start = time.perf_counter()
     th.set_num_threads(1)
     config, curve_seed, final_seed = job.config, CURVE_SEED_BASE + 1000 * job.seed, FINAL_SEED_BASE + 1000 * job.seed
-    evaluations = Evaluations(
-        config.env_id, job.n_eval_episodes, job.threshold, job.eval_every, job.stop_at_solve, curve_seed
-    )
+    evaluations = Evaluations(job, curve_seed)
     book = (
         StopTrainingOnBookCriterion(config.env_id, job.threshold, BOOK_WINDOW, seed=curve_seed)
         if job.protocol == "book"
@@ -514,9 +500,7 @@ def submit(jobs: Sequence[Job], workers: int, ray_address: str | None, stack: co
         try:
             import ray
         except ImportError as error:
-            raise SystemExit(
-                "--ray-address needs Ray: the dev group of pyproject.toml, or pip install 'ray>=2.9'"
-            ) from error
+            raise SystemExit("--ray-address needs Ray: the dev group of pyproject.toml, or 'ray>=2.9'") from error
         if not ray.is_initialized():  # ship this checkout's code to the workers (the nodes need the packages installed)
             runtime_env = {"py_modules": [str(REPO_ROOT / "benchmarks"), str(REPO_ROOT / "sb3_nfq")]}
             if ray_address == "local":

@@ -133,7 +133,7 @@ def test_evaluation_episode_i_starts_from_reset_seed_base_plus_i() -> None:
             obs, reward, terminated, truncated, _ = env.step(int(PoleAngle().predict(obs[None])[0][0]))
             total, done = total + float(reward), terminated or truncated
         expected.append(total)
-    evaluations = run.Evaluations("CartPole-v1", 20, threshold=475.0, eval_every=1024, stop_at_solve=False)
+    evaluations = run.Evaluations(_job("nfq-book", n_eval_episodes=20), seed_base=base)
     for _ in range(2):  # every evaluation replays the same episodes
         returns = evaluations.returns(PoleAngle(), base)
         assert sorted(returns) == sorted(expected) and len(set(expected)) > 5

@@ -6,6 +6,7 @@ chapter 8): the yardstick ``sb3_nfq.NFQ`` with its defaults is measured against.
 after a time-limit truncation), then throws them away. Episodes run on across rounds.
 """
 
+import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -40,13 +41,9 @@ def make_q_network(obs_dim: int, n_actions: int, hidden_sizes: Sequence[int] = (
     :param hidden_sizes: widths of the hidden layers
     :return: the MLP ``obs -> hidden... -> n_actions`` with ReLU between layers (the textbook's Q-network)
     """
-    layers: list[nn.Module] = []
-    width = obs_dim
-    for size in hidden_sizes:
-        layers += [nn.Linear(width, size), nn.ReLU()]
-        width = size
-    layers.append(nn.Linear(width, n_actions))
-    return nn.Sequential(*layers)
+    widths = [obs_dim, *hidden_sizes]
+    hidden = [layer for n_in, n_out in itertools.pairwise(widths) for layer in (nn.Linear(n_in, n_out), nn.ReLU())]
+    return nn.Sequential(*hidden, nn.Linear(widths[-1], n_actions))
 
 
 def td_targets(q_net: nn.Module, batch: Transitions, gamma: float) -> th.Tensor:

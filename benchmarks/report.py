@@ -207,15 +207,9 @@ def primary_cell(
     cells_by_env: dict[str, list[Cell]], env: str, algo: str, eval_every: int | None = None, to_budget: bool = False
 ) -> Cell | None:
     """:return: the current cell of ``algo`` on ``env`` (at that period; trained to the budget) with the most seeds"""
-    cells = [
-        cell
-        for cell in cells_by_env.get(env, [])
-        if not cell.other
-        and cell.algo == algo
-        and eval_every in (None, cell.eval_every)
-        and not (to_budget and cell.stop_at_solve)
-    ]
-    return max(cells, key=lambda cell: cell.n) if cells else None
+    cells = [cell for cell in cells_by_env.get(env, []) if not cell.other and cell.algo == algo]
+    cells = [c for c in cells if eval_every in (None, c.eval_every) and not (to_budget and c.stop_at_solve)]
+    return max(cells, key=lambda cell: cell.n, default=None)
 
 
 def median_ratio_ci(num: Cell, den: Cell, seed: int = 0, n_resamples: int = 10_000) -> tuple[float, float]:
@@ -496,9 +490,7 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
         if min(num.n, den.n) < BOOK_MIN_SEEDS:
             verdict = f"not judged yet: {min(num.n, den.n)} seeds, {BOOK_MIN_SEEDS} needed"
         elif p_value < BOOK_ALPHA:
-            verdict = (
-                f"a difference (p < {BOOK_ALPHA}): {BOOK_PAIR[0] if ratio < 1 else BOOK_PAIR[1]} needs fewer steps"
-            )
+            verdict = f"a difference (p < {BOOK_ALPHA}): {BOOK_PAIR[0 if ratio < 1 else 1]} needs fewer steps"
         else:
             verdict = f"no difference shown (p ≥ {BOOK_ALPHA})"
         lines += [

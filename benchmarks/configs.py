@@ -68,9 +68,9 @@ REFERENCE = "reference-nfq"
 #: The peers: name -> (kind, the rl_zoo3 hyperparameters file).
 ZOO_PEERS: dict[str, tuple[AlgoKind, str]] = {"dqn-zoo": ("dqn", "dqn.yml"), "qrdqn-zoo": ("qrdqn", "qrdqn.yml")}
 KEEP_BEST_SUFFIX = "-keep-best"
-#: Keys of the Zoo's files that change the env or the training loop, which the runner does not apply (none is set for
-#: the four envs): an entry that sets one is refused rather than half-applied.
-ZOO_UNSUPPORTED_KEYS = ("env_wrapper", "vec_env_wrapper", "frame_stack", "callback", "env_kwargs", "monitor_kwargs")
+#: Keys of the Zoo's format that change the env or the training loop, which the runner does not apply (no config sets
+#: one on the four envs): an entry that sets one is refused rather than half-applied.
+NOT_APPLIED = ("normalize", "env_wrapper", "vec_env_wrapper", "frame_stack", "callback", "env_kwargs", "monitor_kwargs")
 
 
 @dataclass(frozen=True)
@@ -127,13 +127,13 @@ def resolve(algo: str, env_id: str) -> ResolvedConfig:
     elif base in ZOO_PEERS:
         kind, file_name = ZOO_PEERS[base]
         kwargs = read_entry(env_id, zoo_file(file_name))
-        if present := [key for key in ZOO_UNSUPPORTED_KEYS if key in kwargs]:
-            raise NotImplementedError(f"the Zoo's {file_name} entry for {env_id} sets {present}, not applied here")
         if algo != base:
             kwargs["keep_best"] = True
         source = f"rl_zoo3 {importlib.metadata.version('rl_zoo3')} hyperparams/{file_name}"
     else:
         raise KeyError(f"unknown algorithm config {algo!r}; known: {algorithm_names()}")
+    if present := [key for key in NOT_APPLIED if key in kwargs]:
+        raise NotImplementedError(f"{source}'s entry for {env_id} sets {present}, which the runner does not apply")
     budget = int(float(kwargs.pop("n_timesteps")))
     json.dumps(kwargs)  # fail early on values that cannot be recorded
     return ResolvedConfig(algo, kind, env_id, kwargs, budget, source)

@@ -1,22 +1,12 @@
 """
-Textbook Neural Fitted Q-Iteration in plain PyTorch: no Stable-Baselines3, one file, read top to bottom.
-
-It is the yardstick of the benchmark suite: ``sb3_nfq.NFQ`` with its defaults should learn as fast (in env steps)
-and run at least as fast (in seconds) as this. The algorithm is chapter 8 of "Grokking Deep Reinforcement
-Learning":
-
-1. collect ``transitions_per_round`` = 1024 fresh transitions (s, a, r, s', terminated) with an
-   epsilon-greedy policy (epsilon = 0.5, constant);
-2. ``fitting_iterations`` = 40 times: compute the TD targets ``r + gamma * max_a' Q(s', a')`` with the current
-   network under ``torch.no_grad()`` (the target is a constant), then take one full-batch gradient step of the
-   MSE between ``Q(s, a)`` and the targets;
-3. throw the transitions away and go back to 1.
-
-A true termination bootstraps on 0; a time-limit truncation bootstraps on ``Q(s', .)`` like any other step.
-The network is ``obs -> 512 -> 128 -> n_actions`` with ReLU, fitted with RMSprop (lr 5e-4), and gamma = 1.
-Episodes run on across rounds: a round ends after 1024 steps, not at an episode boundary.
+Textbook Neural Fitted Q-Iteration in plain PyTorch, no Stable-Baselines3 ("Grokking Deep Reinforcement Learning",
+chapter 8): the yardstick ``sb3_nfq.NFQ`` with its defaults is measured against. Each round collects
+``transitions_per_round`` fresh epsilon-greedy transitions, fits the network ``fitting_iterations`` times on them
+(full batch, MSE to ``r + gamma * max_a' Q(s', a')`` recomputed each time, 0 after a true termination, ``Q(s', .)``
+after a time-limit truncation), then throws them away. Episodes run on across rounds.
 """
 
+import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -28,9 +18,9 @@ from gymnasium import spaces
 from torch import nn
 from torch.nn import functional as F
 
-RoundCallback = Callable[["ReferenceNFQ"], bool]
-#: Called after each training episode ends, with the agent; returning False stops training there (the book's loop).
-EpisodeCallback = Callable[["ReferenceNFQ"], bool]
+#: Called with the agent after each round (``learn``'s ``callback``) or each training episode (``episode_callback``);
+#: returning False stops training.
+Callback = Callable[["ReferenceNFQ"], bool]
 
 
 @dataclass(frozen=True)
@@ -51,13 +41,9 @@ def make_q_network(obs_dim: int, n_actions: int, hidden_sizes: Sequence[int] = (
     :param hidden_sizes: widths of the hidden layers
     :return: the MLP ``obs -> hidden... -> n_actions`` with ReLU between layers (the textbook's Q-network)
     """
-    layers: list[nn.Module] = []
-    width = obs_dim
-    for size in hidden_sizes:
-        layers += [nn.Linear(width, size), nn.ReLU()]
-        width = size
-    layers.append(nn.Linear(width, n_actions))
-    return nn.Sequential(*layers)
+    widths = [obs_dim, *hidden_sizes]
+    hidden = [layer for n_in, n_out in itertools.pairwise(widths) for layer in (nn.Linear(n_in, n_out), nn.ReLU())]
+    return nn.Sequential(*hidden, nn.Linear(widths[-1], n_actions))
 
 
 def td_targets(q_net: nn.Module, batch: Transitions, gamma: float) -> th.Tensor:
@@ -65,8 +51,7 @@ def td_targets(q_net: nn.Module, batch: Transitions, gamma: float) -> th.Tensor:
     :param q_net: the network being fitted
     :param batch: the round's transitions
     :param gamma: discount factor
-    :return: ``r + gamma * max_a' Q(s', a')``, with 0 in place of the max after a true termination;
-        computed without a graph, so no gradient flows through the targets.
+    :return: ``r + gamma * max_a' Q(s', a')``, 0 in place of the max after a true termination; no gradient flows
     """
     with th.no_grad():
         max_next_q = q_net(batch.next_observations).max(dim=1, keepdim=True).values
@@ -75,7 +60,7 @@ def td_targets(q_net: nn.Module, batch: Transitions, gamma: float) -> th.Tensor:
 
 def fit_q_network(
     q_net: nn.Module, optimizer: th.optim.Optimizer, batch: Transitions, gamma: float, iterations: int
-) -> th.Tensor:
+) -> None:
     """
     The fitting phase of one round: ``iterations`` full-batch steps, each with freshly computed targets.
 
@@ -84,18 +69,13 @@ def fit_q_network(
     :param batch: the round's transitions
     :param gamma: discount factor
     :param iterations: number of fitted iterations (the book's K)
-    :return: the loss of each iteration (a detached tensor of shape ``(iterations,)``)
     """
-    losses = []
     for _ in range(iterations):
         targets = td_targets(q_net, batch, gamma)
-        q_taken = q_net(batch.observations).gather(1, batch.actions)
-        loss = F.mse_loss(q_taken, targets)
+        loss = F.mse_loss(q_net(batch.observations).gather(1, batch.actions), targets)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-        losses.append(loss.detach())
-    return th.stack(losses) if losses else th.zeros(0)
 
 
 class ReferenceNFQ:
@@ -132,25 +112,16 @@ class ReferenceNFQ:
         if obs_shape is None or len(obs_shape) != 1:
             raise ValueError(f"ReferenceNFQ needs flat vector observations, {env_id} has {self.env.observation_space}")
         self.n_actions = int(self.env.action_space.n)
-        self.gamma = gamma
-        self.epsilon = epsilon
-        self.transitions_per_round = transitions_per_round
-        self.fitting_iterations = fitting_iterations
-
+        self.gamma, self.epsilon = gamma, epsilon
+        self.transitions_per_round, self.fitting_iterations = transitions_per_round, fitting_iterations
         th.manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.q_net = make_q_network(obs_shape[0], self.n_actions, hidden_sizes)
         self.optimizer = th.optim.RMSprop(self.q_net.parameters(), lr=learning_rate)
-
         self.num_timesteps = 0
-        self.n_rounds = 0
-        self.n_episodes = 0
         #: Set when an episode callback asked to stop training.
         self.stop_requested = False
-        self.last_losses = th.zeros(0)
         self._obs, _ = self.env.reset(seed=seed)
-
-    # --- acting ---------------------------------------------------------------------------------------------
 
     def act(self, observations: np.ndarray) -> np.ndarray:
         """
@@ -165,30 +136,19 @@ class ReferenceNFQ:
         self, observation: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True
     ) -> tuple[np.ndarray, None]:
         """
-        SB3's ``predict``, so that SB3's ``evaluate_policy`` can play it: greedy (or epsilon-greedy) action(s) for one
-        observation or a batch.
+        SB3's ``predict``, so that SB3's ``evaluate_policy`` can play the greedy policy on a ``VecEnv``.
 
-        :param observation: one observation ``(obs_dim,)`` or a batch ``(n, obs_dim)``
+        :param observation: a batch of observations ``(n, obs_dim)``
         :param state: unused (no recurrent state)
         :param episode_start: unused (no recurrent state)
-        :param deterministic: greedy if True, epsilon-greedy otherwise
-        :return: the action(s) and ``None`` (no recurrent state)
+        :param deterministic: must be True: only the greedy policy is played
+        :return: the greedy actions and ``None`` (no recurrent state)
         """
-        batch = np.atleast_2d(observation)
-        actions = self.act(batch)
         if not deterministic:
-            explore = self.rng.random(len(batch)) < self.epsilon
-            actions = np.where(explore, self.rng.integers(self.n_actions, size=len(batch)), actions)
-        return (actions if np.ndim(observation) > 1 else actions[0]), None
+            raise ValueError("ReferenceNFQ.predict plays the greedy policy only: deterministic must be True")
+        return self.act(observation), None
 
-    def _epsilon_greedy(self, observation: np.ndarray) -> int:
-        if self.rng.random() < self.epsilon:
-            return int(self.rng.integers(self.n_actions))
-        return int(self.act(observation[None])[0])  # the network is only run when acting greedily
-
-    # --- one round --------------------------------------------------------------------------------------------
-
-    def collect_round(self, episode_callback: EpisodeCallback | None = None) -> Transitions:
+    def collect_round(self, episode_callback: Callback | None = None) -> Transitions:
         """
         Step the environment ``transitions_per_round`` times with the epsilon-greedy policy.
 
@@ -198,7 +158,10 @@ class ReferenceNFQ:
         """
         obs, actions, rewards, next_obs, terminated = [], [], [], [], []
         for _ in range(self.transitions_per_round):
-            action = self._epsilon_greedy(self._obs)
+            if self.rng.random() < self.epsilon:
+                action = int(self.rng.integers(self.n_actions))
+            else:  # the network is only run when acting greedily
+                action = int(self.act(self._obs[None])[0])
             next_observation, reward, is_terminated, is_truncated, _ = self.env.step(action)
             obs.append(self._obs)
             actions.append(action)
@@ -209,7 +172,6 @@ class ReferenceNFQ:
             self.num_timesteps += 1
             if is_terminated or is_truncated:
                 self._obs, _ = self.env.reset()
-                self.n_episodes += 1
                 if episode_callback is not None and not episode_callback(self):
                     self.stop_requested = True
                     break
@@ -222,35 +184,23 @@ class ReferenceNFQ:
             terminated=th.tensor(terminated, dtype=th.float32).reshape(-1, 1),
         )
 
-    def fit(self, batch: Transitions) -> th.Tensor:
-        """
-        :param batch: the round's transitions
-        :return: the loss of each fitted iteration
-        """
-        self.last_losses = fit_q_network(self.q_net, self.optimizer, batch, self.gamma, self.fitting_iterations)
-        self.n_rounds += 1
-        return self.last_losses
-
     def learn(
-        self,
-        total_timesteps: int,
-        callback: RoundCallback | None = None,
-        episode_callback: EpisodeCallback | None = None,
+        self, total_timesteps: int, callback: Callback | None = None, episode_callback: Callback | None = None
     ) -> "ReferenceNFQ":
         """
         Train in whole rounds until at least ``total_timesteps`` environment steps were taken.
 
         :param total_timesteps: environment-step budget (the last round is completed, so it may be exceeded)
-        :param callback: called after each round (collect then fit) with this agent; returning False stops training
-        :param episode_callback: called after each training episode ends, with this agent; returning False stops
-            training at once (the round under way is not fitted)
+        :param callback: called after each round (collect then fit); returning False stops training
+        :param episode_callback: called after each training episode; returning False stops training at once (the
+            round under way is not fitted, as in the book)
         :return: this agent
         """
         while self.num_timesteps < total_timesteps:
             batch = self.collect_round(episode_callback)
-            if self.stop_requested:  # the book stops at an episode's end, leaving the unfinished round unfitted
+            if self.stop_requested:
                 break
-            self.fit(batch)
+            fit_q_network(self.q_net, self.optimizer, batch, self.gamma, self.fitting_iterations)
             if callback is not None and not callback(self):
                 break
         return self

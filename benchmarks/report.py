@@ -141,8 +141,7 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     :return: env -> cells: the current configs' in :func:`configs.algorithm_names` order, then the others in the
         order the file first holds them; a seed recorded twice in a cell keeps its last line
     """
-    frame = pd.DataFrame([{key: record[key] for key in [*GROUP_KEYS, "seed"]} for record in records])
-    frame["record"] = list(records)
+    frame = pd.DataFrame(records)[[*GROUP_KEYS, "seed"]].assign(record=list(records))
     cells = []
     for _, group in frame.drop_duplicates([*GROUP_KEYS, "seed"], keep="last").groupby(GROUP_KEYS, sort=False):
         runs = sorted(group["record"], key=lambda run: int(run["seed"]))
@@ -208,15 +207,9 @@ def primary_cell(
     cells_by_env: dict[str, list[Cell]], env: str, algo: str, eval_every: int | None = None, to_budget: bool = False
 ) -> Cell | None:
     """:return: the current cell of ``algo`` on ``env`` (at that period; trained to the budget) with the most seeds"""
-    cells = [
-        cell
-        for cell in cells_by_env.get(env, [])
-        if not cell.other
-        and cell.algo == algo
-        and eval_every in (None, cell.eval_every)
-        and not (to_budget and cell.stop_at_solve)
-    ]
-    return max(cells, key=lambda cell: cell.n) if cells else None
+    cells = [cell for cell in cells_by_env.get(env, []) if not cell.other and cell.algo == algo]
+    cells = [c for c in cells if eval_every in (None, c.eval_every) and not (to_budget and c.stop_at_solve)]
+    return max(cells, key=lambda cell: cell.n, default=None)
 
 
 def median_ratio_ci(num: Cell, den: Cell, seed: int = 0, n_resamples: int = 10_000) -> tuple[float, float]:
@@ -442,19 +435,7 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
     cells = book_cells(records)
     if not cells:
         return []
-    rows = [
-        {
-            "implementation": f"the book, as printed (seeds {', '.join(map(str, BOOK_SEEDS))})",
-            "seeds": len(BOOK_SEEDS),
-            "solved": "—",
-            "env steps: mean": f"{BOOK_MEAN_STEPS:,}",
-            "median [min, max]": "—",
-            "episodes: mean": f"{BOOK_MEAN_EPISODES:,}",
-            "median": "—",
-            "train s: median": "—",
-            "final score: mean": "—",
-        }
-    ]
+    rows: list[dict[str, Any]] = []
     against_book = []
     for subset_name, subset in (("the book's seeds", set(BOOK_SEEDS)), ("all seeds", None)):
         for cell in cells.values():
@@ -483,6 +464,9 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
                     f"{cell.algo} {part.steps.mean() / BOOK_MEAN_STEPS:.2f}x its steps and "
                     f"{episodes.mean() / BOOK_MEAN_EPISODES:.2f}x its episodes"
                 )
+    book: dict[str, Any] = {"implementation": f"the book, as printed (seeds {', '.join(map(str, BOOK_SEEDS))})"}
+    book |= {"seeds": len(BOOK_SEEDS), "env steps: mean": f"{BOOK_MEAN_STEPS:,}"}
+    book |= {"episodes: mean": f"{BOOK_MEAN_EPISODES:,}"}
     lines = [
         "## CartPole-v1 under the book's criterion",
         "",
@@ -494,7 +478,7 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
         + "; ".join(f"`{command}`" for command in _unique(records, "command"))
         + f". Torch threads per job: {_joined(records, 'torch_threads')}; launcher: {_joined(records, 'launcher')}.",
         "",
-        pd.DataFrame(rows).to_markdown(index=False),
+        pd.DataFrame([dict.fromkeys(rows[0], "—") | book, *rows]).to_markdown(index=False),
     ]
     if against_book:
         lines += ["", f"Mean over the book's five seeds, against the book's printed means: {'; '.join(against_book)}."]
@@ -506,9 +490,7 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
         if min(num.n, den.n) < BOOK_MIN_SEEDS:
             verdict = f"not judged yet: {min(num.n, den.n)} seeds, {BOOK_MIN_SEEDS} needed"
         elif p_value < BOOK_ALPHA:
-            verdict = (
-                f"a difference (p < {BOOK_ALPHA}): {BOOK_PAIR[0] if ratio < 1 else BOOK_PAIR[1]} needs fewer steps"
-            )
+            verdict = f"a difference (p < {BOOK_ALPHA}): {BOOK_PAIR[0 if ratio < 1 else 1]} needs fewer steps"
         else:
             verdict = f"no difference shown (p ≥ {BOOK_ALPHA})"
         lines += [
@@ -575,11 +557,12 @@ def publish(out: Path, payload: Any, block: str, markers: tuple[str, str]) -> No
     write_readme_block(markers, block)
 
 
-def write_readme_block(markers: tuple[str, str], block: str) -> None:
-    """Put ``block`` between ``markers`` in the top-level README, if it has them."""
-    text = README.read_text()
-    if all(marker in text for marker in markers):
+def write_readme_block(markers: tuple[str, str], block: str) -> bool:
+    """Put ``block`` between ``markers`` in the top-level README, if it has them. :return: whether it had them"""
+    text = README.read_text() if README.is_file() else ""
+    if has_block := all(marker in text for marker in markers):
         README.write_text(replace_block(text, markers, block))
+    return has_block
 
 
 def build_report(
@@ -681,8 +664,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     shown = str(path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path)
     build_report(records, out_dir, shown, relative_command("benchmarks.report", argv), book_records)
     print(f"wrote {out_dir / 'README.md'}")
-    if path == DEFAULT_RESULTS and README.is_file() and README_MARKERS[0] in README.read_text():
-        README.write_text(replace_block(README.read_text(), README_MARKERS, readme_table(records, book_records)))
+    if path == DEFAULT_RESULTS and write_readme_block(README_MARKERS, readme_table(records, book_records)):
         print(f"wrote the results table into {README}")
     return 0
 

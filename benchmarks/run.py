@@ -35,11 +35,11 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize, sync_envs_normalization
+from stable_baselines3.common.vec_env import VecEnv
 
 from benchmarks import configs
 from sb3_nfq.callbacks import BookCriterion, StopTrainingOnBookCriterion
-from sb3_nfq.configs import vec_normalize_kwargs, zoo_to_kwargs
+from sb3_nfq.configs import zoo_to_kwargs
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_RESULTS = REPO_ROOT / "benchmarks" / "results" / "runs.jsonl"
@@ -236,50 +236,32 @@ def result_key(record: dict[str, Any]) -> Key:
 # --- evaluation -------------------------------------------------------------------------------------------------
 
 
-def make_env(env_id: str, n_envs: int, seed: int | None = None, normalize: dict[str, Any] | None = None) -> VecEnv:
+def make_env(env_id: str, n_envs: int, seed: int | None = None) -> VecEnv:
     """
     SB3's ``make_vec_env`` with no render mode (SB3 asks for ``rgb_array``, which makes LunarLander draw particles).
 
     :param env_id: gymnasium env id
     :param n_envs: number of envs
     :param seed: seed of the first env (env ``i`` gets ``seed + i``)
-    :param normalize: ``VecNormalize`` arguments, if the config normalises
     """
-    env = make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs={"render_mode": None})
-    return env if normalize is None else VecNormalize(env, **normalize)
+    return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs={"render_mode": None})
 
 
 class Evaluations(BaseCallback):
     """
-    The greedy evaluations of one job: ``n_episodes`` episodes with ``evaluate_policy`` on as many envs, episode
-    ``i`` from ``reset(seed=seed_base + i)``; with ``VecNormalize``, the training env's statistics, never updated.
-    As an SB3 callback, it evaluates at rollout starts (for NFQ: right after the previous round's fit; SB3's
-    ``EvalCallback`` evaluates inside a round) and at the end of training, and counts the training episodes' ends.
+    The greedy evaluations of one job: ``n_eval_episodes`` episodes with ``evaluate_policy`` on as many envs, episode
+    ``i`` from ``reset(seed=seed_base + i)``, at the first call of :meth:`maybe_evaluate` at or after each multiple of
+    ``eval_every``. As an SB3 callback, it evaluates at rollout starts (for NFQ: right after the previous round's fit;
+    SB3's ``EvalCallback`` evaluates inside a round) and at the end of training, and counts the training episodes'
+    ends.
 
-    :param env_id: gymnasium env id
-    :param n_episodes: episodes per evaluation
-    :param threshold: solved when the mean return reaches this
-    :param eval_every: evaluate at the first call of :meth:`maybe_evaluate` at or after each multiple of this
-    :param stop_at_solve: ask training to stop at the first solved evaluation
-    :param normalize: the training env's ``VecNormalize`` arguments, if any
+    :param job: the job (env, episodes per evaluation, threshold, evaluation period, whether to stop at the solve)
     :param seed_base: the learning curve's first episode seed
     """
 
-    def __init__(
-        self,
-        env_id: str,
-        n_episodes: int,
-        threshold: float,
-        eval_every: int,
-        stop_at_solve: bool,
-        normalize: dict[str, Any] | None = None,
-        seed_base: int = CURVE_SEED_BASE,
-    ) -> None:
+    def __init__(self, job: Job, seed_base: int) -> None:
         super().__init__()
-        eval_normalize = None if normalize is None else {**normalize, "training": False, "norm_reward": False}
-        self.env = make_env(env_id, n_episodes, normalize=eval_normalize)
-        self.n_episodes, self.threshold, self.eval_every = n_episodes, threshold, eval_every
-        self.stop_at_solve, self.seed_base = stop_at_solve, seed_base
+        self.job, self.seed_base, self.env = job, seed_base, make_env(job.config.env_id, job.n_eval_episodes)
         self.curve: list[list[float]] = []
         #: [steps, training episodes ended since the previous evaluation, how many of them by termination]
         self.episode_ends: list[list[int]] = []
@@ -289,10 +271,9 @@ class Evaluations(BaseCallback):
 
     def returns(self, model: Any, seed_base: int) -> np.ndarray:
         """:return: the returns of ``model``'s greedy episodes, the first from ``reset(seed=seed_base)``"""
-        if isinstance(self.env, VecNormalize):
-            sync_envs_normalization(model.get_env(), self.env)
         self.env.seed(seed_base)
-        returns, _ = evaluate_policy(model, self.env, self.n_episodes, deterministic=True, return_episode_rewards=True)
+        n_episodes = self.job.n_eval_episodes
+        returns, _ = evaluate_policy(model, self.env, n_episodes, deterministic=True, return_episode_rewards=True)
         return np.asarray(returns, dtype=float)
 
     def evaluate(self, steps: int, model: Any) -> None:
@@ -303,15 +284,15 @@ class Evaluations(BaseCallback):
         self.curve.append([steps, mean])
         self.episode_ends.append([steps, self._ended, self._terminated])
         self._ended = self._terminated = 0
-        self._next_eval = (steps // self.eval_every + 1) * self.eval_every
-        if mean >= self.threshold and self.steps_to_solve is None:
+        self._next_eval = (steps // self.job.eval_every + 1) * self.job.eval_every
+        if mean >= self.job.threshold and self.steps_to_solve is None:
             self.steps_to_solve = steps
 
     def maybe_evaluate(self, steps: int, model: Any) -> bool:
         """Evaluate if a multiple of ``eval_every`` was reached. :return: whether training should go on"""
         if steps >= self._next_eval:
             self.evaluate(steps, model)
-        self.stopped = self.stop_at_solve and self.steps_to_solve is not None
+        self.stopped = self.job.stop_at_solve and self.steps_to_solve is not None
         return not self.stopped
 
     def finish(self, steps: int, model: Any) -> None:
@@ -338,8 +319,8 @@ class Evaluations(BaseCallback):
 def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
     """
     :param job: an NFQ, DQN or QR-DQN job
-    :return: its model on its training envs (``VecNormalize`` where ``normalize`` asks, as the RL Zoo does) and the
-        callbacks its config asks for (``keep_best``: ``sb3_nfq.KeepBestCallback``)
+    :return: its model on its training envs and the callbacks its config asks for (``keep_best``:
+        ``sb3_nfq.KeepBestCallback``)
     """
     from sb3_contrib import QRDQN
     from stable_baselines3 import DQN
@@ -348,10 +329,9 @@ def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
 
     kwargs = dict(job.config.kwargs)
     n_envs, policy = int(kwargs.pop("n_envs", 1)), kwargs.pop("policy", "MlpPolicy")
-    normalize = vec_normalize_kwargs(kwargs.pop("normalize", False), kwargs.get("gamma"))
     callbacks: list[BaseCallback] = [KeepBestCallback()] if kwargs.pop("keep_best", False) else []
     algorithm_class: Any = {"nfq": NFQ, "dqn": DQN, "qrdqn": QRDQN}[job.config.kind]
-    env = make_env(job.config.env_id, n_envs, job.seed, normalize)
+    env = make_env(job.config.env_id, n_envs, job.seed)
     return algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs)), callbacks
 
 
@@ -424,10 +404,7 @@ def run_job(job: Job) -> dict[str, Any]:
     wall_start = time.perf_counter()
     th.set_num_threads(1)
     config, curve_seed, final_seed = job.config, CURVE_SEED_BASE + 1000 * job.seed, FINAL_SEED_BASE + 1000 * job.seed
-    normalize = vec_normalize_kwargs(config.kwargs.get("normalize", False), config.kwargs.get("gamma"))
-    evaluations = Evaluations(
-        config.env_id, job.n_eval_episodes, job.threshold, job.eval_every, job.stop_at_solve, normalize, curve_seed
-    )
+    evaluations = Evaluations(job, curve_seed)
     book = (
         StopTrainingOnBookCriterion(config.env_id, job.threshold, BOOK_WINDOW, seed=curve_seed)
         if job.protocol == "book"
@@ -523,9 +500,7 @@ def submit(jobs: Sequence[Job], workers: int, ray_address: str | None, stack: co
         try:
             import ray
         except ImportError as error:
-            raise SystemExit(
-                "--ray-address needs Ray: the dev group of pyproject.toml, or pip install 'ray>=2.9'"
-            ) from error
+            raise SystemExit("--ray-address needs Ray: the dev group of pyproject.toml, or 'ray>=2.9'") from error
         if not ray.is_initialized():  # ship this checkout's code to the workers (the nodes need the packages installed)
             runtime_env = {"py_modules": [str(REPO_ROOT / "benchmarks"), str(REPO_ROOT / "sb3_nfq")]}
             if ray_address == "local":

@@ -95,6 +95,13 @@ def test_configs_resolve_every_algorithm_on_every_env_and_refuse_unknown_names()
         configs.resolve("nfq-tuned", "CartPole-v1")
 
 
+def test_configs_refuse_an_entry_that_normalizes_the_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    (tmp_path / "nfq-book.yml").write_text("CartPole-v1:\n  n_timesteps: 1000\n  normalize: true\n")
+    monkeypatch.setattr(configs, "HYPERPARAMS_DIR", tmp_path)
+    with pytest.raises(NotImplementedError, match=r"nfq-book.yml's entry for CartPole-v1 sets \['normalize'\]"):
+        configs.resolve("nfq-book", "CartPole-v1")
+
+
 def test_recorded_runs_of_kept_configs_keep_their_job_keys() -> None:
     """The configs' move and the new runner keep the hashes, so the recorded runs still count as done."""
     checked = 0
@@ -126,7 +133,7 @@ def test_evaluation_episode_i_starts_from_reset_seed_base_plus_i() -> None:
             obs, reward, terminated, truncated, _ = env.step(int(PoleAngle().predict(obs[None])[0][0]))
             total, done = total + float(reward), terminated or truncated
         expected.append(total)
-    evaluations = run.Evaluations("CartPole-v1", 20, threshold=475.0, eval_every=1024, stop_at_solve=False)
+    evaluations = run.Evaluations(_job("nfq-book", n_eval_episodes=20), seed_base=base)
     for _ in range(2):  # every evaluation replays the same episodes
         returns = evaluations.returns(PoleAngle(), base)
         assert sorted(returns) == sorted(expected) and len(set(expected)) > 5

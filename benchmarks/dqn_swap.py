@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks.report import publish
+from benchmarks.report import markdown_table, publish
 from benchmarks.run import REPO_ROOT, machine_line, package_versions, script_result
 
 SCRIPTS = REPO_ROOT / "examples" / "coming_from_dqn"
@@ -61,10 +61,9 @@ def script_settings(name: str) -> dict[str, str]:
 def settings_table() -> str:
     """:return: the markdown table of the two scripts' settings, side by side"""
     dqn, nfq = script_settings("dqn_cartpole.py"), script_settings("nfq_cartpole.py")
-    lines = ["| setting | `dqn_cartpole.py` | `nfq_cartpole.py` |", "|---|---|---|"]
-    for name in [*dqn, *(name for name in nfq if name not in dqn)]:
-        lines.append(f"| `{name}` | {_code(dqn.get(name))} | {_code(nfq.get(name))} |")
-    return "\n".join(lines)
+    names = [*dqn, *(name for name in nfq if name not in dqn)]
+    rows = [(f"`{name}`", _code(dqn.get(name)), _code(nfq.get(name))) for name in names]
+    return markdown_table(["setting", "`dqn_cartpole.py`", "`nfq_cartpole.py`"], rows)
 
 
 def _code(value: str | None) -> str:
@@ -73,17 +72,19 @@ def _code(value: str | None) -> str:
 
 def table(results: Sequence[dict[str, Any]]) -> str:
     """:return: the markdown table of the runs"""
-    lines = [
-        "| script | env steps | torch threads | training seconds (with its evaluations) | greedy return, 100 episodes "
-        "of the loaded model |",
-        "|---|---|---|---|---|",
-    ]
-    for result in results:
-        lines.append(
-            f"| `{result['script']}` | {result['steps']:,} | {result['threads']} | {result['train_seconds']:.0f} s "
-            f"| {result['mean']:.1f} +/- {result['std']:.1f} |"
+    header = ["script", "env steps", "torch threads", "training seconds (with its evaluations)"]
+    header += ["greedy return, 100 episodes of the loaded model"]
+    rows = [
+        (
+            f"`{r['script']}`",
+            f"{r['steps']:,}",
+            r["threads"],
+            f"{r['train_seconds']:.0f} s",
+            f"{r['mean']:.1f} +/- {r['std']:.1f}",
         )
-    return "\n".join(lines)
+        for r in results
+    ]
+    return markdown_table(header, rows)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks.report import publish, write_readme_block
+from benchmarks.report import markdown_table, publish, write_readme_block
 from benchmarks.run import REPO_ROOT, machine_line, package_versions, script_result
 
 DEFAULT_OUT = REPO_ROOT / "benchmarks" / "results" / "main_job.json"
@@ -60,19 +60,22 @@ def run_main_job(busy: bool, folder: Path) -> tuple[dict[str, Any], list[str]]:
 
 def table(results: Sequence[dict[str, Any]]) -> str:
     """:return: the markdown table of the runs"""
-    lines = [
-        "| machine | torch threads | solved at (env steps) | rounds | training + per-round evaluations | whole "
-        "script | greedy mean at the solve | final: 100 new greedy episodes |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for result in results:
-        where = "one busy process beside it" if result["busy_process_beside"] else "quiet"
-        solved = f"{result['steps']:,}" if result["solved"] else f"not solved in {result['steps']:,}"
-        lines.append(
-            f"| {where} | {result['threads']} | {solved} | {result['rounds']} | {result['train_seconds']:.0f} s "
-            f"| {result['wall_seconds']:.0f} s | {result['best_eval_mean']:.1f} | {result['final_eval_mean']:.1f} |"
+    header = ["machine", "torch threads", "solved at (env steps)", "rounds", "training + per-round evaluations"]
+    header += ["whole script", "greedy mean at the solve", "final: 100 new greedy episodes"]
+    rows = [
+        (
+            "one busy process beside it" if r["busy_process_beside"] else "quiet",
+            r["threads"],
+            f"{r['steps']:,}" if r["solved"] else f"not solved in {r['steps']:,}",
+            r["rounds"],
+            f"{r['train_seconds']:.0f} s",
+            f"{r['wall_seconds']:.0f} s",
+            f"{r['best_eval_mean']:.1f}",
+            f"{r['final_eval_mean']:.1f}",
         )
-    return "\n".join(lines)
+        for r in results
+    ]
+    return markdown_table(header, rows)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

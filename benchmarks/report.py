@@ -14,7 +14,7 @@ import json
 import math
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -533,6 +533,13 @@ def readme_table(records: Sequence[dict[str, Any]], book_records: Sequence[dict[
         row = {"env": "CartPole-v1, the book's criterion", "NFQ config (vs dqn-zoo)": "nfq-book vs reference-nfq"}
         rows.append(row | {"seeds": _seeds(book_pair[0].runs)} | columns | command)
     return pd.DataFrame(rows).to_markdown(index=False)
+
+
+def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    """:return: a plain markdown table of ``rows`` under ``header``, each cell as given (no padding)"""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+    return "\n".join(lines)
 
 
 def replace_block(text: str, markers: tuple[str, str], block: str) -> str:

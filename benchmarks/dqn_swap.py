@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.report import markdown_table, publish
-from benchmarks.run import REPO_ROOT, machine_line, package_versions, script_result
+from benchmarks.run import REPO_ROOT, script_result
 
 SCRIPTS = REPO_ROOT / "examples" / "coming_from_dqn"
 DEFAULT_OUT = REPO_ROOT / "benchmarks" / "results" / "dqn_swap.json"
@@ -100,7 +100,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             for name in ("dqn_cartpole.py", "nfq_cartpole.py")
         ]
     block = settings_table() + "\n\n" + table(results)
-    publish(args.out, {"machine": machine_line(), "versions": package_versions(), "results": results}, block, MARKERS)
+    publish(args.out, results, block, MARKERS)
     print(block)
     return 0
 

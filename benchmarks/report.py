@@ -23,7 +23,15 @@ import pandas as pd
 import yaml
 
 from benchmarks import configs
-from benchmarks.run import DEFAULT_BOOK_RESULTS, DEFAULT_RESULTS, REPO_ROOT, read_results, relative_command
+from benchmarks.run import (
+    DEFAULT_BOOK_RESULTS,
+    DEFAULT_RESULTS,
+    REPO_ROOT,
+    machine_line,
+    package_versions,
+    read_results,
+    relative_command,
+)
 
 BOOTSTRAP_REPS = 2000
 #: A config "solves" an env when at least this fraction of its seeds solved it (4/5).
@@ -548,16 +556,18 @@ def replace_block(text: str, markers: tuple[str, str], block: str) -> str:
     return text[:start] + "\n" + block + "\n" + text[end:]
 
 
-def publish(out: Path, payload: Any, block: str, markers: tuple[str, str]) -> None:
+def publish(out: Path, results: list[dict[str, Any]], block: str, markers: tuple[str, str], **extra: Any) -> None:
     """
-    Write a measurement's results: ``payload`` as JSON at ``out``, the markdown ``block`` beside it (``.md``), and the
-    block between ``markers`` in the top-level README when it has them.
+    Write a measurement's results: as JSON at ``out`` (with this machine and the package versions), the markdown
+    ``block`` beside it (``.md``), and the block between ``markers`` in the top-level README when it has them.
 
     :param out: the JSON file
-    :param payload: the results (JSON-serialisable)
+    :param results: one entry per run (JSON-serialisable)
     :param block: their markdown table
     :param markers: the README's start and end markers of the block
+    :param extra: more JSON fields, after the results
     """
+    payload = {"machine": machine_line(), "versions": package_versions(), "results": results, **extra}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(payload, indent=2) + "\n")
     out.with_suffix(".md").write_text(block + "\n")

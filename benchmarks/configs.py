@@ -48,6 +48,7 @@ HELD_OUT_SEEDS = tuple(range(5, 15))
 #: The NFQ configs still measured (benchmarks/hyperparams/<name>.yml), in report order.
 NFQ_CONFIG_NAMES = (
     "nfq-book",
+    "nfq-front-loaded",
     "nfq-front-loaded-keep-best",
     "nfq-capped-10k",
     "nfq-short-rounds",

@@ -62,10 +62,10 @@ def record_fitting(model: NFQ) -> FitRecord:
     def on_forward(module: th.nn.Module, args: tuple[Any, ...]) -> None:
         (obs,) = args
         if isinstance(obs, dict):
-            copy: Any = {key: value.detach().clone() for key, value in obs.items()}
+            copy: Any = {key: value.detach().cpu().clone() for key, value in obs.items()}
             batch_size = len(next(iter(obs.values())))
         else:
-            copy, batch_size = obs.detach().clone(), len(obs)
+            copy, batch_size = obs.detach().cpu().clone(), len(obs)
         if th.is_grad_enabled():
             record.grad_inputs.append(copy)
             record.training_mode_while_fitting.add(module.training)

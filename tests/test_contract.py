@@ -189,7 +189,10 @@ def test_an_image_memory_that_cannot_fit_in_ram_is_refused_naming_buffer_size() 
 
 
 def test_fitting_reads_the_memory_without_copying_it() -> None:
-    model = NFQ("CnnPolicy", Frames(), memory="growing", buffer_size=400, train_freq=100, gradient_steps=1, seed=0)
+    # on the CPU: a fit on a GPU copies the memory to the device
+    model = NFQ(
+        "CnnPolicy", Frames(), memory="growing", buffer_size=400, train_freq=100, gradient_steps=1, seed=0, device="cpu"
+    )
     model.learn(100, callback=StopAfterSteps(99))
     batch = model._stored_transitions()
     assert isinstance(batch.observations, th.Tensor) and isinstance(batch.next_observations, th.Tensor)
@@ -202,13 +205,14 @@ def test_passes_over_an_image_memory_are_bounded_in_bytes_and_give_the_full_batc
 ) -> None:
     from sb3_nfq import memory
 
+    # on the CPU: GPU convolutions default to TF32, whose rounding is past this tolerance
     kwargs: dict[str, Any] = {"memory": "growing", "buffer_size": 600, "train_freq": 150, "gradient_steps": 2}
     kwargs["policy_kwargs"] = {"features_extractor_kwargs": {"features_dim": 32}, "net_arch": [16]}
-    whole = NFQ("CnnPolicy", Frames(), seed=3, **kwargs)
+    whole = NFQ("CnnPolicy", Frames(), seed=3, device="cpu", **kwargs)
     whole.learn(300)
 
     monkeypatch.setattr(memory, "CHUNK_BYTES", 40 * 84 * 84 * 4 * 4)  # 40 frames of float32 per pass
-    chunked = NFQ("CnnPolicy", Frames(), seed=3, **kwargs)
+    chunked = NFQ("CnnPolicy", Frames(), seed=3, device="cpu", **kwargs)
     batch_sizes: list[int] = []
     chunked.q_net.register_forward_pre_hook(lambda module, args: batch_sizes.append(len(args[0])))
     chunked.learn(300)

@@ -81,7 +81,7 @@ def hand_step(
     model: NFQ, data: ReplayBufferSamples, params: list[th.Tensor], loss_fn: Callable[..., th.Tensor]
 ) -> list[th.Tensor]:
     """:return: the parameters after one SGD step (0.1) from ``params`` on ``loss_fn``, targets from a separate pass"""
-    q_net = model.policy.make_q_net()
+    q_net = model.policy.make_q_net().to(model.device)
     with th.no_grad():
         for param, value in zip(q_net.parameters(), params, strict=True):
             param.copy_(value)
@@ -207,14 +207,14 @@ def _expected_sgd_update(
 ) -> list[th.Tensor]:
     """Redo the fitted step by hand on a copy of the network (SGD, lr=1): the update is minus the gradient."""
     data = model._stored_transitions()
-    q_net = model.policy.make_q_net()
+    q_net = model.policy.make_q_net().to(model.device)
     with th.no_grad():
         for param, value in zip(q_net.parameters(), net_params, strict=True):
             param.copy_(value)
     next_q = q_net(data.next_observations).max(dim=1).values.reshape(-1, 1)
     if detach:
         next_q = next_q.detach()
-    target = data.rewards + (1 - terminated) * model.gamma * next_q
+    target = data.rewards + (1 - terminated.to(model.device)) * model.gamma * next_q
     q_sa = th.gather(q_net(data.observations), 1, data.actions.long())
     loss = th.nn.functional.mse_loss(q_sa, target)
     grads = th.autograd.grad(loss, list(q_net.parameters()))
@@ -300,7 +300,7 @@ def test_time_limit_truncation_is_not_termination_in_real_envs(n_envs: int) -> N
 
     model.learn(200, callback=EndRecorder())
 
-    terminated_flags = captured["data"].dones.flatten().numpy()
+    terminated_flags = captured["data"].dones.flatten().cpu().numpy()
     expected_terminated = np.array([terminated for terminated, _ in episode_ends], dtype=np.float32)
     assert any(truncated for _, truncated in episode_ends)
     np.testing.assert_array_equal(terminated_flags, expected_terminated)

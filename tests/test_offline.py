@@ -49,7 +49,9 @@ def test_fit_offline_from_arrays_gives_a_normal_nfq_that_saves_loads_and_learns_
     assert any(not th.equal(a, b) for a, b in zip(before, model.q_net.parameters(), strict=True))
     obs = dataset.observations[:20]
     actions, _ = model.predict(obs, deterministic=True)
-    np.testing.assert_array_equal(actions, model.q_net(th.as_tensor(obs)).argmax(dim=1).numpy())
+    np.testing.assert_array_equal(
+        actions, model.q_net(th.as_tensor(obs, device=model.device)).argmax(dim=1).cpu().numpy()
+    )
 
     model.save(tmp_path / "offline.zip")
     loaded = NFQ.load(tmp_path / "offline.zip", env=make_vec_env("CartPole-v1", n_envs=1, seed=0))
@@ -68,7 +70,7 @@ def test_fit_offline_uses_the_datasets_episode_ends() -> None:
     assert dataset.truncated.any() and dataset.terminated.any()
     data = dataset.samples()
     # only true terminations bootstrap on 0
-    np.testing.assert_array_equal(data.dones.flatten().numpy().astype(bool), arrays["term"])
+    np.testing.assert_array_equal(data.dones.flatten().cpu().numpy().astype(bool), arrays["term"])
 
 
 def test_a_datasets_samples_are_what_its_replay_buffer_holds() -> None:
@@ -92,8 +94,8 @@ def test_fit_offline_from_a_saved_sb3_replay_buffer(tmp_path: Path) -> None:
     dataset = TransitionDataset.from_replay_buffer(tmp_path / "buffer.pkl")
     assert len(dataset) == 300
     stored = collector._stored_transitions()
-    np.testing.assert_array_equal(dataset.observations, stored.observations.numpy())
-    np.testing.assert_array_equal(dataset.terminated, stored.dones.flatten().numpy().astype(bool))
+    np.testing.assert_array_equal(dataset.observations, stored.observations.cpu().numpy())
+    np.testing.assert_array_equal(dataset.terminated, stored.dones.flatten().cpu().numpy().astype(bool))
     assert dataset.truncated.any()
 
     model = NFQ("MlpPolicy", "CartPole-v1", gradient_steps=2, seed=0)

@@ -36,7 +36,8 @@ def test_loaded_model_predicts_the_same_actions_and_q_values(trained: tuple[NFQ,
     loaded = NFQ.load(path)
     obs = np.random.default_rng(0).normal(size=(200, 4)).astype(np.float32)
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
-    th.testing.assert_close(loaded.q_net(th.as_tensor(obs)), model.q_net(th.as_tensor(obs)))
+    on_device = th.as_tensor(obs, device=model.device)
+    th.testing.assert_close(loaded.q_net(on_device), model.q_net(on_device))
     assert loaded.q_net is loaded.policy.q_net
     assert (loaded.train_freq, loaded.gradient_steps, loaded.loss, loaded.huber_delta) == (
         model.train_freq,
@@ -101,8 +102,8 @@ def test_set_parameters_set_env_and_load_on_more_envs(trained: tuple[NFQ, Path])
 def test_load_from_a_file_object(trained: tuple[NFQ, Path]) -> None:
     model, path = trained
     loaded = NFQ.load(io.BytesIO(path.read_bytes()))
-    obs = np.zeros((1, 4), dtype=np.float32)
-    th.testing.assert_close(loaded.q_net(th.as_tensor(obs)), model.q_net(th.as_tensor(obs)))
+    obs = th.zeros((1, 4), device=model.device)
+    th.testing.assert_close(loaded.q_net(obs), model.q_net(obs))
 
 
 def test_loading_something_that_is_not_an_nfq_checkpoint_fails_clearly(tmp_path: Path) -> None:

@@ -160,7 +160,7 @@ def test_exploration_schedule_decays_linearly_from_initial_to_final() -> None:
 def test_predict_is_greedy_when_deterministic_and_explores_otherwise() -> None:
     model = NFQ("MlpPolicy", "CartPole-v1", seed=0)
     obs = np.random.default_rng(0).normal(size=(500, 4)).astype(np.float32)
-    greedy = model.q_net(th.as_tensor(obs)).argmax(dim=1).numpy()
+    greedy = model.q_net(th.as_tensor(obs, device=model.device)).argmax(dim=1).cpu().numpy()
 
     deterministic, _ = model.predict(obs, deterministic=True)
     np.testing.assert_array_equal(deterministic, greedy)

@@ -71,9 +71,9 @@ def test_vec_normalize_normalizes_observations_and_rewards_in_the_fit_and_stores
     batch = model._stored_transitions()
     expected_obs = env.normalize_obs(raw_obs)
     assert isinstance(batch.observations, th.Tensor) and isinstance(expected_obs, np.ndarray)
-    np.testing.assert_allclose(batch.observations.numpy(), expected_obs, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(batch.rewards.numpy()[:62], env.normalize_reward(raw_rewards[:62]), rtol=1e-5)
-    assert not np.allclose(batch.rewards.numpy(), 1.0)  # the fit sees normalised rewards
+    np.testing.assert_allclose(batch.observations.cpu().numpy(), expected_obs, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(batch.rewards.cpu().numpy()[:62], env.normalize_reward(raw_rewards[:62]), rtol=1e-5)
+    assert not np.allclose(batch.rewards.cpu().numpy(), 1.0)  # the fit sees normalised rewards
     first_fit = fitting.grad_inputs[0].numpy()
     assert np.abs(first_fit.mean(axis=0)).max() < 2.0 and not np.allclose(first_fit, 0)
 

@@ -25,6 +25,7 @@ import yaml
 from benchmarks import configs
 from benchmarks.run import (
     DEFAULT_BOOK_RESULTS,
+    DEFAULT_HELD_OUT,
     DEFAULT_RESULTS,
     REPO_ROOT,
     machine_line,
@@ -34,8 +35,6 @@ from benchmarks.run import (
 )
 
 BOOTSTRAP_REPS = 2000
-#: A config "solves" an env when at least this fraction of its seeds solved it (4/5).
-SOLVE_FRACTION = 0.8
 #: Seeds needed before a target is judged.
 MIN_SEEDS = 5
 TARGETS_FILE = REPO_ROOT / "benchmarks" / "targets.yml"
@@ -84,14 +83,13 @@ def iqm_with_ci(values: np.ndarray, seed: int = 0) -> tuple[float, float, float]
 
 class Cell:
     """
-    The runs of one algorithm config on one env (one budget, one config hash), one per seed.
+    The runs of one algorithm config on one env (one budget, one config hash, one seed set), one per seed.
 
     :param runs: the records
-    :param other: a retired config, or settings its name no longer holds
     """
 
-    def __init__(self, runs: list[dict[str, Any]], other: bool = False) -> None:
-        self.runs, self.other, self.n = runs, other, len(runs)
+    def __init__(self, runs: list[dict[str, Any]]) -> None:
+        self.runs, self.n = runs, len(runs)
         self.env, self.algo, self.label = runs[0]["env"], runs[0]["algo"], runs[0]["algo"]
         self.budget, self.config_hash = int(runs[0]["budget"]), runs[0]["config_hash"]
         self.stop_at_solve = any(run.get("stop_at_solve") for run in runs)
@@ -121,7 +119,7 @@ def _steps(value: float, lower_bound: bool) -> str:
 
 def _seeds(runs: Sequence[dict[str, Any]]) -> str:
     """:return: the runs' seeds, consecutive ones as ranges (``0-9, 12, 34``)"""
-    seeds = enumerate(sorted(int(run["seed"]) for run in runs))
+    seeds = enumerate(sorted({int(run["seed"]) for run in runs}))
     groups = [[seed for _, seed in group] for _, group in itertools.groupby(seeds, lambda pair: pair[1] - pair[0])]
     return ", ".join(f"{group[0]}-{group[-1]}" if len(group) > 2 else ", ".join(map(str, group)) for group in groups)
 
@@ -145,40 +143,31 @@ def is_current(record: dict[str, Any]) -> bool:
 
 def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     """
-    :param records: result lines
-    :return: env -> cells: the current configs' in :func:`configs.algorithm_names` order, then the others in the
-        order the file first holds them; a seed recorded twice in a cell keeps its last line
+    :param records: result lines (runs of retired configs, or of settings a name no longer holds, are left out: the
+        results files keep them with their settings)
+    :return: env -> cells in :func:`configs.algorithm_names` order; a seed recorded twice in a cell keeps its last line
     """
-    frame = pd.DataFrame(records)[[*GROUP_KEYS, "seed"]].assign(record=list(records))
+    current = [record for record in records if is_current(record)]
+    if not current:
+        return {}
+    frame = pd.DataFrame(current)[[*GROUP_KEYS, "seed"]].assign(record=current)
     cells = []
     for _, group in frame.drop_duplicates([*GROUP_KEYS, "seed"], keep="last").groupby(GROUP_KEYS, sort=False):
-        runs = sorted(group["record"], key=lambda run: int(run["seed"]))
-        cells.append(Cell(runs, other=not is_current(runs[0])))
+        cells.append(Cell(sorted(group["record"], key=lambda run: int(run["seed"]))))
     order = {algo: index for index, algo in enumerate(configs.algorithm_names())}
-    by_env = {}
-    for env in [*configs.ENVS, *sorted({cell.env for cell in cells} - set(configs.ENVS))]:
-        in_env = [cell for cell in cells if cell.env == env]
-        by_env[env] = sorted(
-            in_env, key=lambda c: (c.other, 0 if c.other else order.get(c.algo, len(order)), -c.n * (not c.other))
-        )
-        for cell in by_env[env]:
-            cell.label = _label(cell, [o for o in by_env[env] if o.algo == cell.algo and o.other == cell.other])
-    return {env: cells for env, cells in by_env.items() if cells}
-
-
-def _label(cell: Cell, same: Sequence[Cell]) -> str:
-    """:return: the algorithm name, plus what tells this cell apart from its algorithm's other cells in its table"""
-    changed = cell.other and cell.algo in configs.algorithm_names()
-    details = [f"config {cell.config_hash}, since changed"] if changed else []
-    if len({other.budget for other in same}) > 1:
-        details.append(f"budget {cell.budget:,}")
-    if len({other.eval_every for other in same}) > 1:
-        details.append(f"evaluated every {cell.eval_every:,}")
-    if len({other.stop_at_solve for other in same}) > 1:
-        details.append("stopped at solve" if cell.stop_at_solve else "to the budget")
-    if len({(other.budget, other.eval_every, other.stop_at_solve) for other in same}) < len(same) and not changed:
-        details.append(f"config {cell.config_hash}")
-    return f"{cell.algo} ({', '.join(details)})" if details else cell.algo
+    by_env = {
+        env: sorted((c for c in cells if c.env == env), key=lambda c: (order[c.algo], -c.n)) for env in configs.ENVS
+    }
+    for env_cells in by_env.values():
+        for cell in env_cells:
+            same = [other for other in env_cells if other.algo == cell.algo]
+            details = [f"budget {cell.budget:,}"] if len({other.budget for other in same}) > 1 else []
+            if len({other.eval_every for other in same}) > 1:
+                details.append(f"evaluated every {cell.eval_every:,}")
+            if len({other.stop_at_solve for other in same}) > 1:
+                details.append("stopped at solve" if cell.stop_at_solve else "to the budget")
+            cell.label = f"{cell.algo} ({', '.join(details)})" if details else cell.algo
+    return {env: env_cells for env, env_cells in by_env.items() if env_cells}
 
 
 def env_table(cells: Sequence[Cell]) -> str:
@@ -211,15 +200,6 @@ def env_table(cells: Sequence[Cell]) -> str:
 # --- targets ----------------------------------------------------------------------------------------------------
 
 
-def primary_cell(
-    cells_by_env: dict[str, list[Cell]], env: str, algo: str, eval_every: int | None = None, to_budget: bool = False
-) -> Cell | None:
-    """:return: the current cell of ``algo`` on ``env`` (at that period; trained to the budget) with the most seeds"""
-    cells = [cell for cell in cells_by_env.get(env, []) if not cell.other and cell.algo == algo]
-    cells = [c for c in cells if eval_every in (None, c.eval_every) and not (to_budget and c.stop_at_solve)]
-    return max(cells, key=lambda cell: cell.n, default=None)
-
-
 def median_ratio_ci(num: Cell, den: Cell, seed: int = 0, n_resamples: int = 10_000) -> tuple[float, float]:
     """:return: the 95% percentile-bootstrap CI of median steps(num) / median steps(den), runs resampled per cell"""
     rng = np.random.default_rng(seed)
@@ -229,16 +209,15 @@ def median_ratio_ci(num: Cell, den: Cell, seed: int = 0, n_resamples: int = 10_0
     return float(low), float(high)
 
 
-def ratio_target(num: Cell | None, den: Cell | None, low: float, high: float) -> tuple[str, str]:
+def steps_ratio(num: Cell, den: Cell, low: float, high: float, ci_below: float = math.inf) -> tuple[str, str]:
     """
-    :return: (verdict, text) for median steps(num) / median steps(den) within [low, high]; a censored median makes
-        the ratio an interval, judged only when the whole interval is on one side
+    :return: (verdict, text) for median steps(num) / median steps(den) within [low, high], with the 95% CI of the ratio
+        below ``ci_below``; a censored median makes the ratio an interval, judged only when all of it is on one side
     """
-    if num is None or den is None or min(num.n, den.n) < MIN_SEEDS:
-        return "not enough data", f"needs {MIN_SEEDS} seeds each ({num.n if num else 0} and {den.n if den else 0})"
     (num_low, num_censored), (den_low, den_censored) = num.steps_quantile(50), den.steps_quantile(50)
     ratio_low = 0.0 if den_censored else num_low / den_low
     ratio_high = math.inf if num_censored else num_low / den_low
+    ci_high = math.inf
     if ratio_low == ratio_high:
         ci_low, ci_high = median_ratio_ci(num, den)
         text = f"{ratio_low:.2f} ({num_low:,.0f} / {den_low:,.0f}; 95% bootstrap CI of the ratio "
@@ -249,9 +228,9 @@ def ratio_target(num: Cell | None, den: Cell | None, low: float, high: float) ->
         text = f"≤ {ratio_high:.2f} (median of {den.algo} did not solve)"
     else:
         text = "unknown: neither median solved"
-    if low <= ratio_low and ratio_high <= high:
+    if low <= ratio_low and ratio_high <= high and ci_high < ci_below:
         return "met", text
-    return ("not met", text) if ratio_high < low or ratio_low > high else ("not enough data", text)
+    return ("not met", text) if ratio_high < low or ratio_low > high or ci_high >= ci_below else ("unknown", text)
 
 
 def jobs_at_once(records: Sequence[dict[str, Any]]) -> float:
@@ -265,117 +244,112 @@ def jobs_at_once(records: Sequence[dict[str, Any]]) -> float:
     return max(at_once(str(record.get("launcher", "in-process"))) for record in records)
 
 
-def side_by_side(records: Sequence[dict[str, Any]], env: str, algo: str, baseline: str) -> tuple[Cell, Cell] | None:
+def side_by_side(records: Sequence[dict[str, Any]], env: str, algos: Sequence[str]) -> list[Cell] | None:
     """
-    :return: the runs of ``algo`` and ``baseline`` on ``env`` trained to the budget by one runner command (same
-        machine, same session): of several, the one with the most seeds of both, then the fewest jobs at a time (jobs
-        sharing the cores slow NFQ's full-memory fits more than DQN's small batches); ``None`` if none ran both
+    :return: a cell per algo of its runs on ``env`` trained to the budget by runner commands that ran all of ``algos``
+        (same machine, same session), pooled over such commands (a seed run twice keeps its first run); ``None`` if
+        no command ran them all
     """
-    by_command: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    by_command: dict[str, dict[str, dict[int, dict[str, Any]]]] = {}
     for record in records:
-        if record["env"] == env and record["algo"] in (algo, baseline) and not record.get("stop_at_solve"):
-            by_command.setdefault(record["command"], {algo: [], baseline: []})[record["algo"]].append(record)
-    both = [(Cell(runs[algo]), Cell(runs[baseline])) for runs in by_command.values() if runs[algo] and runs[baseline]]
-    return max(
-        both, key=lambda pair: (min(pair[0].n, pair[1].n), -jobs_at_once(pair[0].runs + pair[1].runs)), default=None
-    )
+        if record["env"] == env and record["algo"] in algos and not record.get("stop_at_solve"):
+            by_seed = by_command.setdefault(record["command"], {algo: {} for algo in algos})[record["algo"]]
+            by_seed.setdefault(int(record["seed"]), record)
+    pooled: dict[str, dict[int, dict[str, Any]]] = {algo: {} for algo in algos}
+    for runs in (runs for runs in by_command.values() if all(runs.values())):
+        for algo in algos:
+            pooled[algo] = runs[algo] | pooled[algo]
+    return [Cell([pooled[a][s] for s in sorted(pooled[a])]) for a in algos] if all(pooled.values()) else None
 
 
-def seconds_ratio_target(
-    records: Sequence[dict[str, Any]], env: str, algo: str, baseline: str, high: float
-) -> tuple[str, str]:
-    """:return: (verdict, text) for median training seconds of ``algo`` / of ``baseline`` <= ``high``, side by side"""
-    pair = side_by_side(records, env, algo, baseline)
-    if pair is None or min(pair[0].n, pair[1].n) < MIN_SEEDS:
-        have = f"{min(pair[0].n, pair[1].n)} seeds" if pair else "none"
-        return "not enough data", f"needs {MIN_SEEDS} seeds of both run to the budget by one command ({have})"
-    num, den = (float(np.median(cell.column("train_seconds"))) for cell in pair)
-    workers = jobs_at_once(pair[0].runs + pair[1].runs)
-    ran = "on a Ray cluster" if workers == math.inf else f"{workers} job{'s' if workers > 1 else ''} at a time"
-    text = f"{num / den:.2f} ({num:.0f} s / {den:.0f} s, {pair[0].n} seeds, {ran})"
-    return ("met" if num / den <= high else "not met"), text
+def _ran(cells: Sequence[Cell]) -> str:
+    workers = jobs_at_once([run for cell in cells for run in cell.runs])
+    return "on a Ray cluster" if workers == math.inf else f"{workers:.0f} job{'s' if workers > 1 else ''} at a time"
 
 
-def read_targets(path: Path = TARGETS_FILE) -> list[dict[str, Any]]:
-    """
-    :param path: the targets file; ``algo: shipped`` is the config of :data:`configs.SHIPPED` on each env, ``env: all``
-        each of :data:`configs.ENVS`
-    :return: its targets, expanded per env, each checked to be of a known kind with the keys that kind needs
-    """
+def read_targets(path: Path = TARGETS_FILE) -> dict[str, Any]:
+    """:return: the targets file's values, checked to hold every key the report judges and no other"""
+    targets = yaml.safe_load(path.read_text())
     needs = {
-        "steps_ratio": {"algo", "baseline", "env", "high"},
-        "final_score": {"algo", "env"},
-        "seconds_ratio": {"algo", "baseline", "env", "high"},
-        "solved_envs": {"algo", "at_least"},
+        "fidelity": {"algo", "baseline", "env", "low", "high"},
+        "held_out": {"steps_ratio", "ci_below", "final_at_least", "seconds_ratio"},
+        "one_config": {"solved_at_least", "steps_ratio"},
     }
-    targets = []
-    for target in yaml.safe_load(path.read_text()):
-        kind = target.get("kind")
-        if kind not in needs:
-            raise ValueError(f"{path}: unknown target kind {kind!r}; known: {sorted(needs)}")
-        keys, allowed = set(target) - {"kind"}, needs[kind] | ({"low"} if kind == "steps_ratio" else set())
-        if not needs[kind] <= keys <= allowed:
-            raise ValueError(f"{path}: a {kind} target takes {sorted(needs[kind])} (optional: low), got {sorted(keys)}")
-        for env in list(configs.ENVS) if target.get("env") == "all" else [target.get("env")]:
-            algo = configs.SHIPPED[env] if target["algo"] == "shipped" else target["algo"]
-            targets.append({**target, "env": env, "algo": algo} if env else target)
-    return targets
+    for section, keys in needs.items():
+        if set(targets.get(section) or {}) != keys:
+            raise ValueError(f"{path}: '{section}' needs exactly the keys {sorted(keys)}, got {targets.get(section)}")
+    if unknown := set(targets) - set(needs):
+        raise ValueError(f"{path}: unknown sections {sorted(unknown)}; known: {sorted(needs)}")
+    return dict(targets)
 
 
-def judge(
-    cells_by_env: dict[str, list[Cell]], target: dict[str, Any], records: Sequence[dict[str, Any]]
-) -> list[tuple[str, str, str]]:
-    """:return: (what the target says, verdict, measured) for each reading of it (one per evaluation period)"""
-    algo, env, kind = target["algo"], str(target.get("env")), target["kind"]
-    if kind == "solved_envs":
-        cells = {name: primary_cell(cells_by_env, name, algo) for name in configs.ENVS}
-        known = [cell for cell in cells.values() if cell is not None and cell.n >= MIN_SEEDS]
-        solved = sum(bool(np.mean(cell.column("solved")) >= SOLVE_FRACTION) for cell in known)
-        if solved >= target["at_least"]:
-            verdict = "met"
-        elif solved + len(cells) - len(known) < target["at_least"]:
-            verdict = "not met"
-        else:
-            verdict = "not enough data"
-        seeds = [
-            f"{name}: {int(c.column('solved').sum())}/{c.n}" if c else f"{name}: 0 seeds" for name, c in cells.items()
+def peers_of(algo: str) -> list[str]:
+    """:return: the peers an NFQ config is compared with, selected alike (a ``-keep-best`` config: their -keep-best)"""
+    suffix = configs.KEEP_BEST_SUFFIX if algo.endswith(configs.KEEP_BEST_SUFFIX) else ""
+    return [peer + suffix for peer in configs.ZOO_PEERS]
+
+
+def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """:return: (target, verdict, measured) of the held-out targets, per env: the shipped config against both peers,
+    and the one config"""
+    goal, one = targets["held_out"], targets["one_config"]
+    n_seeds, rows = len(configs.HELD_OUT_SEEDS), []
+    for env in configs.ENVS:
+        algo = configs.SHIPPED[env]
+        peers = peers_of(algo)
+        cells = side_by_side(records, env, [algo, *peers])
+        claims = [
+            f"{env}: {algo}'s median steps to solve ≤ {goal['steps_ratio']:g}x the better peer's "
+            f"({' or '.join(peers)}), 95% CI of the ratio below {goal['ci_below']:g}",
+            f"{env}: {algo}'s final score ≥ threshold in ≥ {goal['final_at_least']}/{n_seeds} seeds, and in no fewer "
+            "than each peer's",
+            f"{env}: {algo}'s median training seconds to the budget ≤ {goal['seconds_ratio']:g}x {peers[0]}'s",
         ]
-        text = f"{solved} of {len(cells)} envs solved in ≥ 4/5 seeds ({'; '.join(seeds)})"
-        claim = f"{algo} (one config) solves ≥ {target['at_least']} of the {len(cells)} envs in ≥ 4/5 seeds"
-        return [(claim, verdict, text)]
-    if kind == "seconds_ratio":
-        name = f"{algo} / {target['baseline']} median training seconds to the budget ≤ {target['high']:g}, "
-        name += f"run side by side, on {env}"
-        return [(name, *seconds_ratio_target(records, env, algo, target["baseline"], float(target["high"])))]
-    names = [algo] if kind == "final_score" else [algo, target["baseline"]]
-    periods = [
-        {cell.eval_every for cell in cells_by_env.get(env, []) if cell.algo == name and not cell.other}
-        for name in names
-    ]
-    readings: list[tuple[str, str, str]] = []
-    common: list[int | None] = [*sorted(set.intersection(*periods))]
-    for period in common or [None]:
-        note = "" if period is None else f" (runs evaluated every {period:,} steps)"
-        if kind == "final_score":
-            cell = primary_cell(cells_by_env, env, algo, period, to_budget=True)
-            threshold = configs.ENVS[env].threshold
-            if cell is None or cell.n < MIN_SEEDS:
-                verdict = "not enough data"
-                text = f"needs {MIN_SEEDS} seeds run to the budget ({cell.n if cell else 0})"
-            else:
-                scores = ", ".join(f"{s:.0f}" for s in cell.column("final_score"))
-                verdict = "met" if cell.n_at_threshold() / cell.n >= SOLVE_FRACTION else "not met"
-                text = f"{cell.n_at_threshold()}/{cell.n} seeds with final score ≥ {threshold:g} (scores {scores})"
-            readings.append(
-                (f"{algo} final score at budget ≥ {threshold:g} on {env} in ≥ 4/5 seeds{note}", verdict, text)
-            )
+        if cells is None or min(cell.n for cell in cells) < n_seeds:
+            have = min(cell.n for cell in cells) if cells else 0
+            rows += [
+                (claim, "not enough data", f"{have} of {n_seeds} held-out seeds run side by side") for claim in claims
+            ]
         else:
-            low, high = float(target.get("low", 0.0)), float(target["high"])
-            bound = f"within {low:g} to {high:g}" if low > 0 else f"≤ {high:g}"
-            num, den = (primary_cell(cells_by_env, env, name, period) for name in names)
-            name = f"{algo} / {target['baseline']} median steps to solve on {env} {bound}{note}"
-            readings.append((name, *ratio_target(num, den, low, high)))
-    return readings
+            nfq, *peer_cells = cells
+            better = min(peer_cells, key=lambda cell: cell.steps_quantile(50)[0])
+            verdict, text = steps_ratio(nfq, better, 0.0, goal["steps_ratio"], goal["ci_below"])
+            rows.append((claims[0], verdict, f"{text} against {better.algo}"))
+            counts = [cell.n_at_threshold() for cell in cells]
+            met = counts[0] >= goal["final_at_least"] and counts[0] >= max(counts[1:])
+            text = " vs ".join(f"{cell.algo} {count}/{cell.n}" for cell, count in zip(cells, counts, strict=True))
+            rows.append((claims[1], "met" if met else "not met", text))
+            seconds = [float(np.median(cell.column("train_seconds"))) for cell in cells]
+            ratio = seconds[0] / seconds[1]
+            text = f"{ratio:.3f} ({seconds[0]:.1f} s / {seconds[1]:.1f} s, {_ran(cells)})"
+            rows.append((claims[2], "met" if ratio <= goal["seconds_ratio"] else "not met", text))
+        claim = f"{env}: {configs.ONE_CONFIG} (one config) solves in ≥ {one['solved_at_least']}/{n_seeds} seeds, at "
+        claim += f"≤ {one['steps_ratio']:g}x {peers_of(configs.ONE_CONFIG)[0]}'s median steps"
+        pair = side_by_side(records, env, [configs.ONE_CONFIG, peers_of(configs.ONE_CONFIG)[0]])
+        if pair is None or min(cell.n for cell in pair) < n_seeds:
+            have = min(cell.n for cell in pair) if pair else 0
+            rows.append((claim, "not enough data", f"{have} of {n_seeds} held-out seeds run side by side"))
+        else:
+            solved = int(pair[0].column("solved").sum())
+            verdict, text = steps_ratio(pair[0], pair[1], 0.0, one["steps_ratio"])
+            met = verdict == "met" and solved >= one["solved_at_least"]
+            rows.append((claim, "met" if met else "not met", f"solved {solved}/{pair[0].n}; steps ratio {text}"))
+    return rows
+
+
+def fidelity_target(cells_by_env: dict[str, list[Cell]], fidelity: dict[str, Any]) -> tuple[str, str, str]:
+    """:return: (target, verdict, measured) of the fidelity pair on the development seeds, at the evaluation period
+    where both have the most seeds"""
+    algo, baseline, env, low, high = (fidelity[key] for key in ("algo", "baseline", "env", "low", "high"))
+    cells = cells_by_env.get(env, [])
+    pairs = [
+        (a, b) for a in cells if a.algo == algo for b in cells if b.algo == baseline and b.eval_every == a.eval_every
+    ]
+    claim = f"{env}: {algo} / {baseline} median steps to solve within {low:g} to {high:g} (development seeds)"
+    num, den = max(pairs, key=lambda pair: min(pair[0].n, pair[1].n), default=(None, None))
+    if num is None or den is None or min(num.n, den.n) < MIN_SEEDS:
+        return claim, "not enough data", f"needs {MIN_SEEDS} seeds each"
+    return claim, *steps_ratio(num, den, low, high)
 
 
 # --- curves, book protocol, README table -------------------------------------------------------------------------
@@ -510,36 +484,40 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
-def _pair_columns(pair: Sequence[Cell]) -> dict[str, str]:
+def comparison_row(cells: Sequence[Cell], seeds: str) -> dict[str, str]:
+    """:return: the README table's columns for ``cells`` run side by side, the NFQ config first"""
     return {
-        "steps to solve: median": " vs ".join(_steps(*cell.steps_quantile(50)) for cell in pair),
-        "final score ≥ threshold": " vs ".join(f"{cell.n_at_threshold()}/{cell.n}" for cell in pair),
-        "train s: median": " vs ".join(f"{np.median(cell.column('train_seconds')):.0f}" for cell in pair),
+        "env": cells[0].env,
+        "seeds": seeds,
+        "NFQ config vs peers": " vs ".join(cell.algo for cell in cells),
+        "steps to solve: median": " vs ".join(_steps(*cell.steps_quantile(50)) for cell in cells),
+        "final score ≥ threshold": " vs ".join(f"{cell.n_at_threshold()}/{cell.n}" for cell in cells),
+        "train s: median": " vs ".join(f"{np.median(cell.column('train_seconds')):.0f}" for cell in cells),
+        "command": "; ".join(f"`{command}`" for command in _unique([r for c in cells for r in c.runs], "command")),
     }
 
 
-def readme_table(records: Sequence[dict[str, Any]], book_records: Sequence[dict[str, Any]]) -> str:
+def readme_table(
+    records: Sequence[dict[str, Any]], book_records: Sequence[dict[str, Any]], held_out: Sequence[dict[str, Any]] = ()
+) -> str:
     """
-    :return: the top-level README's results table: per env, the shipped config against dqn-zoo (run side by side by
-        one command, see :func:`side_by_side`), and the fidelity row (the book's protocol), each with its command
+    :return: the top-level README's results table: per env, the shipped config against both peers on the held-out
+        seeds (selected alike; without them yet: against dqn-zoo on the development seeds, which chose it), run side
+        by side (:func:`side_by_side`), and the fidelity row (the book's protocol), each with its command
     """
     rows = []
     for env in configs.ENVS:
-        if pair := side_by_side(records, env, configs.SHIPPED[env], "dqn-zoo"):
-            command = {"command": f"`{pair[0].runs[0]['command']}`"}
-            rows.append(
-                {"env": env, "NFQ config (vs dqn-zoo)": pair[0].algo, "seeds": _seeds(pair[0].runs)}
-                | _pair_columns(pair)
-                | command
-            )
-    cells = book_cells(book_records)
-    if all(algo in cells for algo in BOOK_PAIR):
-        book_pair = [cells[algo] for algo in BOOK_PAIR]
-        columns = _pair_columns(book_pair)
-        columns["steps to solve: median"] += f" (the book's printed mean over its 5 seeds: {BOOK_MEAN_STEPS:,})"
-        command = {"command": "; ".join(f"`{command}`" for command in _unique(book_pair[0].runs, "command"))}
-        row = {"env": "CartPole-v1, the book's criterion", "NFQ config (vs dqn-zoo)": "nfq-book vs reference-nfq"}
-        rows.append(row | {"seeds": _seeds(book_pair[0].runs)} | columns | command)
+        algo = configs.SHIPPED[env]
+        if cells := side_by_side(held_out, env, [algo, *peers_of(algo)]):
+            rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (held out)"))
+        elif cells := side_by_side(records, env, [algo, peers_of(configs.ONE_CONFIG)[0]]):
+            rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (chose the config)"))
+    cells_by_algo = book_cells(book_records)
+    if all(algo in cells_by_algo for algo in BOOK_PAIR):
+        row = comparison_row([cells_by_algo[algo] for algo in BOOK_PAIR], _seeds(cells_by_algo[BOOK_PAIR[0]].runs))
+        row["env"] = "CartPole-v1, the book's criterion"
+        row["steps to solve: median"] += f" (the book's printed mean over its 5 seeds: {BOOK_MEAN_STEPS:,})"
+        rows.append(row)
     return pd.DataFrame(rows).to_markdown(index=False)
 
 
@@ -588,77 +566,78 @@ def build_report(
     results_path: str,
     command: str,
     book_records: Sequence[dict[str, Any]] = (),
+    held_out: Sequence[dict[str, Any]] = (),
 ) -> str:
     """
     Write ``README.md`` and the learning-curve PNGs into ``out_dir``.
 
-    :param records: result lines
+    :param records: result lines of the development seeds
     :param out_dir: output folder
     :param results_path: where the records came from (named in the report)
     :param command: the report command (printed in the report)
     :param book_records: result lines of the runner's ``--protocol book``
+    :param held_out: result lines of the held-out seeds
     :return: the markdown text
     """
-    cells_by_env = build_cells(records)
-    versions = [", ".join(f"{k} {v}" for k, v in (vs or {}).items()) for vs in _unique(records, "versions")]
-    targets = [reading for target in read_targets() for reading in judge(cells_by_env, target, records)]
+    everything = [*records, *held_out]
+    versions = [", ".join(f"{k} {v}" for k, v in (vs or {}).items()) for vs in _unique(everything, "versions")]
+    targets = read_targets()
+    cells_by_env, held_out_cells = build_cells(records), build_cells(held_out)
+    readings = [fidelity_target(cells_by_env, targets["fidelity"]), *held_out_targets(held_out, targets)]
     seeds = f"{configs.SEEDS[0]}-{configs.SEEDS[-1]}"
-    held_out = f"{configs.HELD_OUT_SEEDS[0]}-{configs.HELD_OUT_SEEDS[-1]}"
+    held = f"{configs.HELD_OUT_SEEDS[0]}-{configs.HELD_OUT_SEEDS[-1]}"
     lines = [
         "# NFQ benchmark results",
         "",
-        f"Generated by `{command}` from {len(records)} runs in `{results_path}`.",
+        f"Generated by `{command}` from {len(records)} runs in `{results_path}` (development seeds) and "
+        f"{len(held_out)} in `{DEFAULT_HELD_OUT.relative_to(REPO_ROOT)}` (held-out seeds).",
         "",
         "## How the data was produced",
         "",
         "Runner command(s), exactly as recorded with the runs:",
         "",
-        *[f"    {cmd}" for cmd in _unique(records, "command")],
+        *[f"    {cmd}" for cmd in _unique(everything, "command")],
         "",
-        "Machine(s): " + "; ".join(f"`{machine}`" for machine in _unique(records, "machine")),
+        "Machine(s): " + "; ".join(f"`{machine}`" for machine in _unique(everything, "machine")),
         "",
-        f"Torch threads per job: {_joined(records, 'torch_threads')}; launcher: {_joined(records, 'launcher')}",
+        f"Torch threads per job: {_joined(everything, 'torch_threads')}; launcher: {_joined(everything, 'launcher')}",
         "",
         "Versions: " + "; ".join(versions),
         "",
-        "Code revision(s): " + ", ".join(f"`{rev}`" for rev in _unique(records, "git")),
+        "Code revision(s): " + ", ".join(f"`{rev}`" for rev in _unique(everything, "git")),
         "",
         "Criterion, timing and record fields: `benchmarks/README.md`, section What is measured. Runs marked "
         "(stopped at solve) ran with `--stop-at-solve`: their final score is taken at the solve. A run whose loss "
         "became non-finite (`NFQDivergenceError`) counts as unsolved unless it had solved before. Unsolved runs count "
         "as the steps they trained: a value marked ≥ is a lower bound. IQM 95% CIs: rliable "
         f"`get_interval_estimates` ({BOOTSTRAP_REPS} bootstrap resamples over runs). Learning curves: mean over seeds "
-        "with a 95% bootstrap band, drawn while at least half of a row's runs are still training.",
+        "with a 95% bootstrap band, drawn while at least half of a row's runs are still training. Runs of retired "
+        "configs stay in the results files with their settings, out of this report.",
         "",
-        f"Seeds: the measured rows run on seeds {seeds} (`benchmarks.configs.SEEDS`); the shipped configs were chosen "
-        f"by their results on the same seeds, so their rows carry that selection. Seeds {held_out} "
-        "(`benchmarks.configs.HELD_OUT_SEEDS`) are held out to measure them again.",
+        f"Seeds: every choice (tuning, the shipped config of each env) was made on tuning seeds (100 and up) or on the "
+        f"development seeds {seeds} (`benchmarks.configs.SEEDS`), whose rows carry that selection. The targets are "
+        f"judged on the held-out seeds {held} (`benchmarks.configs.HELD_OUT_SEEDS`), which no choice used.",
         "",
         "## Targets",
         "",
         f"From `{TARGETS_FILE.relative_to(REPO_ROOT)}`; the shipped config of each env (`benchmarks.configs.SHIPPED`): "
         + ", ".join(f"{env} {algo}" for env, algo in configs.SHIPPED.items() if env in configs.ENVS)
-        + ".",
+        + f". Peers: {', '.join(configs.ZOO_PEERS)}, with `sb3_nfq.KeepBestCallback` (`-keep-best`) where the shipped "
+        "config ends on its best fit. Held-out runs side by side: runs of one runner command, pooled over commands.",
         "",
-        pd.DataFrame(targets, columns=["target", "verdict", "measured"])
+        pd.DataFrame(readings, columns=["target", "verdict", "measured"])
         .assign(verdict=lambda frame: "**" + frame["verdict"] + "**")
         .to_markdown(index=False),
         "",
     ]
-    for env, cells in cells_by_env.items():
-        periods = ", ".join(str(e) for e in _unique([run for cell in cells for run in cell.runs], "eval_every"))
-        lines += [f"## {env} (threshold {cells[0].runs[0]['threshold']:g}, evaluation every {periods} steps)", ""]
-        if current := [cell for cell in cells if not cell.other]:
-            plot_curves(env, current, out_dir / f"curves_{env}.png")
-            lines += [env_table(current), "", f"![{env} learning curves](curves_{env}.png)", ""]
-        if other := [cell for cell in cells if cell.other]:
-            lines += [
-                "Runs of retired configs, or of settings their name no longer holds (their settings are in the "
-                "records' `config`; not used for the targets or the plot):",
-                "",
-                env_table(other),
-                "",
-            ]
+    for title, by_env in ((f"held-out seeds {held}", held_out_cells), (f"development seeds {seeds}", cells_by_env)):
+        for env, cells in by_env.items():
+            periods = ", ".join(str(e) for e in _unique([run for cell in cells for run in cell.runs], "eval_every"))
+            lines += [f"## {env}, {title} (threshold {cells[0].runs[0]['threshold']:g}, evaluated every {periods})"]
+            lines += ["", env_table(cells), ""]
+            if by_env is held_out_cells or env not in held_out_cells:
+                plot_curves(env, cells, out_dir / f"curves_{env}.png")
+                lines += [f"![{env} learning curves, {title}](curves_{env}.png)", ""]
     text = "\n".join([*lines, *book_protocol_lines(book_records)])
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "README.md").write_text(text)
@@ -670,18 +649,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="the runner's JSON-lines file")
+    parser.add_argument("--held-out-results", type=Path, default=DEFAULT_HELD_OUT, help="the held-out seeds' file")
     parser.add_argument("--book-results", type=Path, default=DEFAULT_BOOK_RESULTS, help="its --protocol book file")
     parser.add_argument("--out-dir", type=Path, help="where README.md and the PNGs go (default: the results' folder)")
     args = parser.parse_args(argv)
     records, book_records = read_results(args.results), read_results(args.book_results)
+    held_out = read_results(args.held_out_results)
     if not records:
         print(f"no results in {args.results}", file=sys.stderr)
         return 1
     out_dir, path = args.out_dir or args.results.parent, args.results.resolve()
     shown = str(path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path)
-    build_report(records, out_dir, shown, relative_command("benchmarks.report", argv), book_records)
+    build_report(records, out_dir, shown, relative_command("benchmarks.report", argv), book_records, held_out)
     print(f"wrote {out_dir / 'README.md'}")
-    if path == DEFAULT_RESULTS and write_readme_block(README_MARKERS, readme_table(records, book_records)):
+    if path == DEFAULT_RESULTS and write_readme_block(README_MARKERS, readme_table(records, book_records, held_out)):
         print(f"wrote the results table into {README}")
     return 0
 

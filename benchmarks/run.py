@@ -44,6 +44,7 @@ from sb3_nfq.configs import zoo_to_kwargs
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_RESULTS = REPO_ROOT / "benchmarks" / "results" / "runs.jsonl"
 DEFAULT_BOOK_RESULTS = REPO_ROOT / "benchmarks" / "results" / "book_protocol.jsonl"
+DEFAULT_HELD_OUT = REPO_ROOT / "benchmarks" / "results" / "held_out.jsonl"
 PROTOCOLS = ("rounds", "book")
 BOOK_WINDOW = 100
 #: Bumped when the evaluation protocol changes, so that old results do not count as done.
@@ -335,23 +336,6 @@ def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
     return algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs)), callbacks
 
 
-def effective_hyperparams(model: Any) -> dict[str, Any]:
-    """:return: the settings the trained model ran with, as plain data"""
-    if not hasattr(model, "policy"):  # the reference
-        effective = {name: getattr(model, name) for name in ("gamma", "epsilon", "transitions_per_round")}
-        effective |= {"fitting_iterations": model.fitting_iterations}
-        effective |= {"learning_rate": model.optimizer.param_groups[0]["lr"], "optimizer": "RMSprop"}
-        return {**effective, "q_net": str(model.q_net).replace("\n", "")}
-    names = (
-        "learning_rate gamma batch_size buffer_size learning_starts train_freq gradient_steps target_update_interval"
-    )
-    names += " exploration_initial_eps exploration_final_eps exploration_fraction loss max_grad_norm n_envs"
-    effective = {n: json.loads(json.dumps(getattr(model, n), default=repr)) for n in names.split() if hasattr(model, n)}
-    effective |= {"policy": type(model.policy).__name__, "net_arch": getattr(model.policy, "net_arch", None)}
-    effective |= {"optimizer": type(model.policy.optimizer).__name__}
-    return {**effective, "q_net": str(model.policy).replace("\n", "")}
-
-
 def train(job: Job, tracker: BaseCallback) -> tuple[Any, str | None]:
     """
     :param job: the job
@@ -442,7 +426,6 @@ def run_job(job: Job) -> dict[str, Any]:
         "kind": config.kind,
         "config": config.kwargs,
         "config_source": config.source,
-        "effective_hyperparams": effective_hyperparams(model),
         "threshold": job.threshold,
         "n_eval_episodes": job.n_eval_episodes,
         "eval_every": job.eval_every,

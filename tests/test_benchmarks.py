@@ -13,6 +13,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+import yaml
 
 import sb3_nfq
 from benchmarks import configs, report, run
@@ -207,40 +208,60 @@ def recorded() -> list[dict[str, Any]]:
     return [r for r in run.read_results(RESULTS / "runs.jsonl") if r["env"] == "CartPole-v1" and r["algo"] in algos]
 
 
-def test_report_keeps_the_numbers_of_recorded_runs(recorded: list[dict[str, Any]], tmp_path: Path) -> None:
-    text = report.build_report(
-        recorded, tmp_path, "runs.jsonl", "test", run.read_results(RESULTS / "book_protocol.jsonl")
-    )
-    lines = {
-        line
-        for line in text.splitlines()
-        if "1.13 (117,248 / 103,936; 95% bootstrap CI of the ratio 0.90-1.81)" in line
-    }
-    assert len(lines) == 1 and "| **met** " in lines.pop()
+@pytest.fixture(scope="module")
+def held_out() -> list[dict[str, Any]]:
+    """The recorded held-out CartPole runs of the shipped config and its two peers, selected alike."""
+    algos = {"nfq-front-loaded-keep-best", "dqn-zoo-keep-best", "qrdqn-zoo-keep-best"}
+    return [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["algo"] in algos]
+
+
+def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_seeds(
+    recorded: list[dict[str, Any]], held_out: list[dict[str, Any]], tmp_path: Path
+) -> None:
+    book = run.read_results(RESULTS / "book_protocol.jsonl")
+    text = report.build_report(recorded, tmp_path, "runs.jsonl", "test", book, held_out)
+    targets = {line.split("|")[1].strip(): line.split("|")[2:4] for line in text.splitlines() if "| **" in line}
+    fidelity = "CartPole-v1: nfq-book / reference-nfq median steps to solve within 0.75 to 1.25 (development seeds)"
+    assert targets[fidelity][0].strip() == "**met**"
+    assert "1.13 (117,248 / 103,936; 95% bootstrap CI of the ratio 0.90-1.81)" in targets[fidelity][1]
     assert re.search(r"117,248 \[89,856, 146,176\] *\| 118,374 \[94,205, 138,240\]", text)  # as before the rewrite
-    assert "0.65 (4,691 / 7,168; 95% bootstrap CI of the ratio 0.21-1.58)" in text
+    steps = [verdict_measured for target, verdict_measured in targets.items() if "0.75x the better peer" in target]
+    assert (
+        steps[0][0].strip() == "**met**"
+        and "0.25 (3,072 / 12,160; 95% bootstrap CI of the ratio 0.10-0.63)" in steps[0][1]
+    )
+    assert (
+        "dqn-zoo-keep-best 6/10 vs qrdqn-zoo-keep-best 9/10" in text
+        and "1.005 (109.7 s / 109.1 s, 2 jobs at a time)" in text
+    )
+    assert sum(verdict.strip() == "**not enough data**" for verdict, _ in targets.values()) == 13  # the other envs
     assert "p = 0.534, no difference shown" in text
     assert (tmp_path / "curves_CartPole-v1.png").stat().st_size > 0
-    retired = text.split("Runs of retired configs")[1]
-    assert "nfq-tuned (evaluated every 256, to the budget, config 873a1704df6c)" in retired
+    assert "nfq-tuned" not in text.split("## Targets")[1]  # retired: kept in the results file, out of the report
 
 
-def test_readme_table_pairs_the_shipped_config_with_dqn_run_side_by_side(recorded: list[dict[str, Any]]) -> None:
-    table = report.readme_table(recorded, run.read_results(RESULTS / "book_protocol.jsonl"))
-    rows = [row for row in table.splitlines() if row.startswith("| CartPole")]
-    assert "4,691 vs 7,168" in rows[0] and "5/5 vs 3/5" in rows[0] and "nfq-front-loaded-keep-best dqn-zoo" in rows[0]
+def test_readme_table_shows_held_out_rows_where_they_exist(
+    recorded: list[dict[str, Any]], held_out: list[dict[str, Any]]
+) -> None:
+    book = run.read_results(RESULTS / "book_protocol.jsonl")
+    rows = [row for row in report.readme_table(recorded, book, held_out).splitlines() if row.startswith("| CartPole")]
+    assert "5-14 (held out)" in rows[0] and "3,072 vs 12,160 vs 21,632" in rows[0] and "9/10 vs 6/10 vs 9/10" in rows[0]
     assert "330,964 vs 320,831" in rows[1] and "--protocol book" in rows[1]
+    development = report.readme_table(recorded, book).splitlines()[2]
+    assert "0-4 (chose the config)" in development and "4,691 vs 7,168" in development and "5/5 vs 3/5" in development
     readme = report.replace_block(
-        f"a\n{report.README_MARKERS[0]}\nSTALE\n{report.README_MARKERS[1]}\nb", report.README_MARKERS, table
+        f"a\n{report.README_MARKERS[0]}\nSTALE\n{report.README_MARKERS[1]}\nb", report.README_MARKERS, rows[0]
     )
     assert "STALE" not in readme and readme.startswith("a\n") and readme.endswith(report.README_MARKERS[1] + "\nb")
 
 
-def test_targets_expand_shipped_and_all_and_refuse_unknown_kinds(tmp_path: Path) -> None:
+def test_targets_file_is_refused_with_a_missing_or_unknown_key(tmp_path: Path) -> None:
     targets = report.read_targets()
-    final = [target for target in targets if target["kind"] == "final_score"]
-    assert [(target["env"], target["algo"]) for target in final] == [(e, configs.SHIPPED[e]) for e in configs.ENVS]
+    assert targets["held_out"]["final_at_least"] == 8
     bad = tmp_path / "targets.yml"
-    bad.write_text("- {kind: fastest, algo: nfq-book}\n")
-    with pytest.raises(ValueError, match="unknown target kind 'fastest'"):
+    bad.write_text(yaml.safe_dump({**targets, "held_out": {**targets["held_out"], "fastest": 1}}))
+    with pytest.raises(ValueError, match="'held_out' needs exactly the keys"):
+        report.read_targets(bad)
+    bad.write_text(yaml.safe_dump({**targets, "speed": {}}))
+    with pytest.raises(ValueError, match="unknown sections"):
         report.read_targets(bad)

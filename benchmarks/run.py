@@ -196,11 +196,12 @@ def make_jobs(
     :param stop_at_solve: stop each job at its first solved evaluation
     :param command: the command line, recorded with each result
     :param protocol: ``"rounds"`` or ``"book"`` (then every job stops at its solve)
-    :return: the jobs, algorithm-major
+    :return: the jobs, seed-major: each seed's algorithms one after the other, so that the jobs sharing the cores
+        mix the algorithms (jobs of one algorithm side by side slow each other alike, and bias its seconds)
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol must be one of {list(PROTOCOLS)}, got {protocol!r}")
-    git = git_revision()
+    git, resolved = git_revision(), [configs.resolve(algo, env_id) for env_id in envs for algo in algos]
     return [
         Job(
             config,
@@ -213,8 +214,8 @@ def make_jobs(
             command,
             git,
         )
-        for config in (configs.resolve(algo, env_id) for algo in algos for env_id in envs)
         for seed in seeds
+        for config in resolved
     ]
 
 

@@ -290,8 +290,11 @@ def peers_of(algo: str) -> list[str]:
 
 
 def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any]) -> list[tuple[str, str, str]]:
-    """:return: (target, verdict, measured) of the held-out targets, per env: the shipped config against both peers,
-    and the one config"""
+    """
+    :param records: result lines; only the seeds of :data:`configs.HELD_OUT_SEEDS` count
+    :param targets: the targets file's values (:func:`read_targets`)
+    :return: (target, verdict, measured) per env: the shipped config against both peers, and the one config
+    """
     goal, one = targets["held_out"], targets["one_config"]
     n_seeds, rows = len(configs.HELD_OUT_SEEDS), []
     records = [record for record in records if int(record["seed"]) in configs.HELD_OUT_SEEDS]
@@ -333,14 +336,18 @@ def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any])
         else:
             solved = int(pair[0].column("solved").sum())
             verdict, text = steps_ratio(pair[0], pair[1], 0.0, one["steps_ratio"])
-            met = verdict == "met" and solved >= one["solved_at_least"]
-            rows.append((claim, "met" if met else "not met", f"solved {solved}/{pair[0].n}; steps ratio {text}"))
+            if solved < one["solved_at_least"] or verdict == "not met":
+                verdict = "not met"
+            rows.append((claim, verdict, f"solved {solved}/{pair[0].n}; steps ratio {text}"))
     return rows
 
 
 def fidelity_target(cells_by_env: dict[str, list[Cell]], fidelity: dict[str, Any]) -> tuple[str, str, str]:
-    """:return: (target, verdict, measured) of the fidelity pair on the development seeds, at the evaluation period
-    where both have the most seeds"""
+    """
+    :param cells_by_env: the development seeds' cells (:func:`build_cells`)
+    :param fidelity: the targets file's ``fidelity`` values
+    :return: (target, verdict, measured) at the evaluation period where both have the most seeds
+    """
     algo, baseline, env, low, high = (fidelity[key] for key in ("algo", "baseline", "env", "low", "high"))
     cells = cells_by_env.get(env, [])
     pairs = [
@@ -502,14 +509,15 @@ def readme_table(
     records: Sequence[dict[str, Any]], book_records: Sequence[dict[str, Any]], held_out: Sequence[dict[str, Any]] = ()
 ) -> str:
     """
-    :return: the top-level README's results table: per env, the shipped config against both peers on the held-out
-        seeds (selected alike; without them yet: against dqn-zoo on the development seeds, which chose it), run side
+    :return: the top-level README's results table: per env, the shipped config against both peers on every held-out
+        seed (selected alike; until all have run: against dqn-zoo on the development seeds, which chose it), run side
         by side (:func:`side_by_side`), and the fidelity row (the book's protocol), each with its command
     """
     rows, held_out = [], [record for record in held_out if int(record["seed"]) in configs.HELD_OUT_SEEDS]
     for env in configs.ENVS:
         algo = configs.SHIPPED[env]
-        if cells := side_by_side(held_out, env, [algo, *peers_of(algo)]):
+        cells = side_by_side(held_out, env, [algo, *peers_of(algo)])
+        if cells and min(cell.n for cell in cells) == len(configs.HELD_OUT_SEEDS):
             rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (held out)"))
         elif cells := side_by_side(records, env, [algo, peers_of(configs.ONE_CONFIG)[0]]):
             rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (chose the config)"))

@@ -196,8 +196,8 @@ def make_jobs(
     :param stop_at_solve: stop each job at its first solved evaluation
     :param command: the command line, recorded with each result
     :param protocol: ``"rounds"`` or ``"book"`` (then every job stops at its solve)
-    :return: the jobs, seed-major: each seed's algorithms one after the other, so that the jobs sharing the cores
-        mix the algorithms (jobs of one algorithm side by side slow each other alike, and bias its seconds)
+    :return: the jobs, seed-major: each seed's algorithms one after the other, so that every algorithm shares the
+        cores with a like mix of jobs (algorithm-major, each would run mostly beside itself)
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol must be one of {list(PROTOCOLS)}, got {protocol!r}")

@@ -289,15 +289,22 @@ def peers_of(algo: str) -> list[str]:
     return [peer + suffix for peer in configs.ZOO_PEERS]
 
 
+def _missing(cells: Sequence[Cell] | None) -> str | None:
+    """:return: how many held-out seeds ran side by side, if fewer than all of them; ``None`` if all did"""
+    have = min(cell.n for cell in cells) if cells else 0
+    n_seeds = len(configs.HELD_OUT_SEEDS)
+    return f"{have} of {n_seeds} held-out seeds run side by side" if have < n_seeds else None
+
+
 def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any]) -> list[tuple[str, str, str]]:
     """
-    :param records: result lines; only the seeds of :data:`configs.HELD_OUT_SEEDS` count
+    :param records: result lines of the held-out seeds
     :param targets: the targets file's values (:func:`read_targets`)
     :return: (target, verdict, measured) per env: the shipped config against both peers, and the one config
     """
     goal, one = targets["held_out"], targets["one_config"]
     n_seeds, rows = len(configs.HELD_OUT_SEEDS), []
-    records = [record for record in records if int(record["seed"]) in configs.HELD_OUT_SEEDS]
+    dqn = peers_of(configs.ONE_CONFIG)[0]
     for env in configs.ENVS:
         algo = configs.SHIPPED[env]
         peers = peers_of(algo)
@@ -309,11 +316,8 @@ def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any])
             "than each peer's",
             f"{env}: {algo}'s median training seconds to the budget ≤ {goal['seconds_ratio']:g}x {peers[0]}'s",
         ]
-        if cells is None or min(cell.n for cell in cells) < n_seeds:
-            have = min(cell.n for cell in cells) if cells else 0
-            rows += [
-                (claim, "not enough data", f"{have} of {n_seeds} held-out seeds run side by side") for claim in claims
-            ]
+        if (missing := _missing(cells)) or cells is None:
+            rows += [(claim, "not enough data", str(missing)) for claim in claims]
         else:
             nfq, *peer_cells = cells
             better = min(peer_cells, key=lambda cell: cell.steps_quantile(50)[0])
@@ -328,11 +332,10 @@ def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any])
             text = f"{ratio:.3f} ({seconds[0]:.1f} s / {seconds[1]:.1f} s, {_ran(cells)})"
             rows.append((claims[2], "met" if ratio <= goal["seconds_ratio"] else "not met", text))
         claim = f"{env}: {configs.ONE_CONFIG} (one config) solves in ≥ {one['solved_at_least']}/{n_seeds} seeds, at "
-        claim += f"≤ {one['steps_ratio']:g}x {peers_of(configs.ONE_CONFIG)[0]}'s median steps"
-        pair = side_by_side(records, env, [configs.ONE_CONFIG, peers_of(configs.ONE_CONFIG)[0]])
-        if pair is None or min(cell.n for cell in pair) < n_seeds:
-            have = min(cell.n for cell in pair) if pair else 0
-            rows.append((claim, "not enough data", f"{have} of {n_seeds} held-out seeds run side by side"))
+        claim += f"≤ {one['steps_ratio']:g}x {dqn}'s median steps"
+        pair = side_by_side(records, env, [configs.ONE_CONFIG, dqn])
+        if (missing := _missing(pair)) or pair is None:
+            rows.append((claim, "not enough data", str(missing)))
         else:
             solved = int(pair[0].column("solved").sum())
             verdict, text = steps_ratio(pair[0], pair[1], 0.0, one["steps_ratio"])
@@ -513,11 +516,11 @@ def readme_table(
         seed (selected alike; until all have run: against dqn-zoo on the development seeds, which chose it), run side
         by side (:func:`side_by_side`), and the fidelity row (the book's protocol), each with its command
     """
-    rows, held_out = [], [record for record in held_out if int(record["seed"]) in configs.HELD_OUT_SEEDS]
+    rows = []
     for env in configs.ENVS:
         algo = configs.SHIPPED[env]
         cells = side_by_side(held_out, env, [algo, *peers_of(algo)])
-        if cells and min(cell.n for cell in cells) == len(configs.HELD_OUT_SEEDS):
+        if cells and not _missing(cells):
             rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (held out)"))
         elif cells := side_by_side(records, env, [algo, peers_of(configs.ONE_CONFIG)[0]]):
             rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (chose the config)"))
@@ -663,7 +666,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out-dir", type=Path, help="where README.md and the PNGs go (default: the results' folder)")
     args = parser.parse_args(argv)
     records, book_records = read_results(args.results), read_results(args.book_results)
-    held_out = read_results(args.held_out_results)
+    held_out = [run for run in read_results(args.held_out_results) if int(run["seed"]) in configs.HELD_OUT_SEEDS]
     if not records:
         print(f"no results in {args.results}", file=sys.stderr)
         return 1

@@ -33,6 +33,7 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch as th
+from stable_baselines3.common.utils import LinearSchedule
 
 from sb3_nfq.configs import ZOO_FILE
 from sb3_nfq.nfq import NFQ
@@ -50,7 +51,9 @@ DEFAULT_ENJOY_FOLDER = "logs"
 COMMANDS = ("train", "enjoy")
 
 # Optuna search space (the zoo's ``hyperparams_opt.py`` pattern). ``trial.params`` holds the raw choices below;
-# :func:`convert_nfq_params` turns them into NFQ keyword arguments.
+# :func:`convert_nfq_params` turns them into NFQ keyword arguments. It covers the textbook's fresh memory and the
+# growing memory of the benchmark's configs, and it sets every key that decides the memory and the fit, so that no
+# key of the env's entry (a ``round_fraction``, a ``huber_delta``) is left half-applied to a sampled memory or loss.
 
 #: ``net_arch`` choices, by name (``"textbook"`` is the book's 512 -> 128).
 NET_ARCHS: dict[str, list[int]] = {
@@ -64,14 +67,24 @@ OPTIMIZERS: dict[str, type[th.optim.Optimizer]] = {
     "adam": th.optim.Adam,
 }
 #: Categorical hyperparameters passed to NFQ as they are sampled: one row per NFQ keyword argument.
-#: Adding a row adds it to the search space, e.g. ``"memory": ("fresh", "growing")`` or
-#: ``"target_mode": ("recompute_every_step", "fixed_per_iteration")``.
+#: Adding a row adds it to the search space.
 CATEGORICAL_SPACE: dict[str, tuple[bool | int | float | str | None, ...]] = {
-    "train_freq": (256, 512, 1024, 2048, 4096),  # transitions per round (the book's E = 1024)
+    "train_freq": (128, 256, 512, 1024, 2048, 4096),  # transitions per round (the book's E = 1024)
+    "memory": ("fresh", "growing"),  # the book's, or the 2005 paper's (with a buffer_size below)
+    "target_mode": ("recompute_every_step", "fixed_per_iteration"),
     "gamma": (0.95, 0.98, 0.99, 0.995, 0.999, 1.0),
     "batch_size": (None, 64, 256, 1024),  # None: one full-batch step per fitted iteration (the book)
     "loss": ("mse", "huber"),
+    "max_grad_norm": (None, 10.0),
 }
+#: ``buffer_size`` choices, sampled for ``memory="growing"`` only (a fresh memory holds one round).
+BUFFER_SIZES = (10_000, 20_000, 50_000)
+#: ``huber_delta`` choices, sampled for ``loss="huber"`` only.
+HUBER_DELTAS = (1.0, 5.0, 10.0)
+#: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * M / train_freq`` with ``M``
+#: the memory (one round; or ``buffer_size``, which a growing memory fills). It sets ``gradient_steps`` (at least 1),
+#: and bounds a trial's compute per env step (the book's: 40; the benchmark's growing-memory configs: 156 to 195).
+FIT_COST = (5.0, 250.0)
 
 
 def sample_nfq_params(
@@ -92,7 +105,8 @@ def sample_nfq_params(
     trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
     sampled: dict[str, Any] = {
         "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-2, log=True),
-        "gradient_steps": trial.suggest_int("gradient_steps", 5, 100, log=True),  # the book's K = 40
+        "lr_schedule": trial.suggest_categorical("lr_schedule", ["constant", "linear"]),  # linear: to 0 at the budget
+        "fit_cost": trial.suggest_float("fit_cost", *FIT_COST, log=True),
         "exploration_initial_eps": trial.suggest_float("exploration_initial_eps", 0.05, 1.0),
         "exploration_final_eps": trial.suggest_float("exploration_final_eps", 0.0, 0.5),
         "exploration_fraction": trial.suggest_float("exploration_fraction", 0.05, 1.0),
@@ -101,6 +115,10 @@ def sample_nfq_params(
     }
     for name, choices in CATEGORICAL_SPACE.items():
         sampled[name] = trial.suggest_categorical(name, choices)
+    if sampled["memory"] == "growing":
+        sampled["buffer_size"] = trial.suggest_categorical("buffer_size", BUFFER_SIZES)
+    if sampled["loss"] == "huber":
+        sampled["huber_delta"] = trial.suggest_categorical("huber_delta", HUBER_DELTAS)
     return convert_nfq_params(sampled)
 
 
@@ -109,11 +127,24 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     Turn sampled values (``trial.params``) into NFQ keyword arguments, as the zoo's ``HYPERPARAMS_CONVERTER``
     entries do: it is also how ``train --storage ... --study-name ... --trial-id N`` trains with a stored trial.
 
-    :param sampled_params: raw sampled values: NFQ keyword arguments, plus ``net_arch`` and ``optimizer``
-        as names from :data:`NET_ARCHS` and :data:`OPTIMIZERS`
+    :param sampled_params: raw sampled values: NFQ keyword arguments, plus ``net_arch`` and ``optimizer`` as names
+        from :data:`NET_ARCHS` and :data:`OPTIMIZERS`, ``lr_schedule`` (``"linear"``: ``learning_rate`` decays
+        linearly to 0 at the budget), and ``fit_cost`` (see :data:`FIT_COST`), which with ``memory`` sets
+        ``gradient_steps``, ``buffer_size`` and the round schedule
     :return: NFQ keyword arguments, with ``net_arch`` and ``optimizer_class`` in ``policy_kwargs``
     """
     hyperparams = dict(sampled_params)
+    if hyperparams.pop("lr_schedule", "constant") == "linear":
+        hyperparams["learning_rate"] = LinearSchedule(hyperparams["learning_rate"], 0.0, 1.0)
+    if "fit_cost" in hyperparams:
+        growing = hyperparams["memory"] == "growing"
+        memory_size = hyperparams["buffer_size"] if growing else hyperparams["train_freq"]
+        iterations = round(hyperparams.pop("fit_cost") * hyperparams["train_freq"] / memory_size)
+        hyperparams |= {"gradient_steps": max(1, iterations), "fit_epochs": 1}
+        hyperparams["buffer_size"] = memory_size if growing else None  # a fresh memory holds one round
+        hyperparams |= {"round_fraction": None, "round_fraction_offset": 0}  # rounds of train_freq
+    if hyperparams.get("loss", "huber") != "huber":
+        hyperparams["huber_delta"] = 1.0  # the default, over an entry's threshold for its Huber loss
     policy_kwargs: dict[str, Any] = {}
     if "net_arch" in hyperparams:
         policy_kwargs["net_arch"] = list(NET_ARCHS[hyperparams.pop("net_arch")])

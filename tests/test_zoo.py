@@ -21,7 +21,7 @@ from optuna.trial import TrialState
 from stable_baselines3.common.type_aliases import TrainFreq
 
 from sb3_nfq import NFQ
-from sb3_nfq.configs import ZOO_FILE, read_entry, zoo_to_kwargs
+from sb3_nfq.configs import ZOO_FILE, nfq_kwargs, read_entry, zoo_to_kwargs
 from sb3_nfq.zoo import (
     ALGO_NAME,
     CATEGORICAL_SPACE,
@@ -138,27 +138,51 @@ def _hyperparameter_file() -> dict[str, dict[str, Any]]:
 
 def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() -> None:
     study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0), direction="maximize")
-    for _ in range(30):
+    entries = {env_id: nfq_kwargs(env_id) for env_id in _hyperparameter_file() if env_id != "atari"}
+    for _ in range(40):
         trial = study.ask()
         hyperparams = sample_nfq_params(trial, 0, 1, {"using_her_replay_buffer": False, "her_kwargs": {}})
-        assert convert_nfq_params(trial.params) == hyperparams  # what `--trial-id` reloads
+        assert repr(convert_nfq_params(trial.params)) == repr(hyperparams)  # what `--trial-id` reloads
+        growing, huber = trial.params["memory"] == "growing", trial.params["loss"] == "huber"
         assert set(trial.params) == {
             "learning_rate",
-            "gradient_steps",
+            "lr_schedule",
+            "fit_cost",
             "exploration_initial_eps",
             "exploration_final_eps",
             "exploration_fraction",
             "net_arch",
             "optimizer",
             *CATEGORICAL_SPACE,
+            *(["buffer_size"] if growing else []),
+            *(["huber_delta"] if huber else []),
         }
         assert trial.user_attrs["worker"] == f"{socket.gethostname()}:{os.getpid()}"
-        model = NFQ("MlpPolicy", ENV_ID, **hyperparams)
-        assert isinstance(model.policy.optimizer, OPTIMIZERS[trial.params["optimizer"]])
-        assert model.policy.net_arch == NET_ARCHS[trial.params["net_arch"]]
+        for env_id, entry in entries.items():  # the zoo puts the sampled values over the env's entry
+            model = NFQ("MlpPolicy", ENV_ID, **(entry | hyperparams))
+            assert isinstance(model.policy.optimizer, OPTIMIZERS[trial.params["optimizer"]]), env_id
+            assert model.policy.net_arch == NET_ARCHS[trial.params["net_arch"]]
+            assert model.huber_delta == trial.params.get("huber_delta", 1.0)
+            memory_size = trial.params.get("buffer_size", trial.params["train_freq"])
+            fit_cost = trial.params["fit_cost"]
+            assert model.gradient_steps == max(1, round(fit_cost * trial.params["train_freq"] / memory_size))
+            assert model.round_fraction is None
+        linear = trial.params["lr_schedule"] == "linear"
+        assert model.lr_schedule(0.0) == (0.0 if linear else trial.params["learning_rate"])
         study.tell(trial, 0.0)
-    sampled_batch_sizes = {trial.params["batch_size"] for trial in study.trials}
-    assert None in sampled_batch_sizes and len(sampled_batch_sizes) > 1
+    assert {trial.params["batch_size"] for trial in study.trials} == set(CATEGORICAL_SPACE["batch_size"])
+    assert {trial.params["memory"] for trial in study.trials} == {"fresh", "growing"}
+
+
+def test_a_study_stored_before_the_growing_memory_was_searched_converts_as_it_did() -> None:
+    stored = {"learning_rate": 1e-3, "gradient_steps": 12, "train_freq": 512, "loss": "huber", "net_arch": "small"}
+    assert convert_nfq_params(stored) == {
+        "learning_rate": 1e-3,
+        "gradient_steps": 12,
+        "train_freq": 512,
+        "loss": "huber",
+        "policy_kwargs": {"net_arch": [64, 64]},
+    }
 
 
 # --- train, enjoy, tune: the real zoo in subprocesses ---
@@ -299,7 +323,10 @@ def test_optimize_then_train_with_a_stored_trial(tmp_path: Path) -> None:
     )
     model = NFQ.load(next((tmp_path / "logs" / ALGO_NAME).glob(f"{ENV_ID}_*/{ENV_ID}.zip")))
     assert model.lr_schedule(1.0) == pytest.approx(stored["learning_rate"])
-    assert model.gradient_steps == stored["gradient_steps"]
+    assert model.gradient_steps == convert_nfq_params(stored)["gradient_steps"]
+    assert (model.memory, model.target_mode, model.max_grad_norm) == tuple(
+        stored[key] for key in ("memory", "target_mode", "max_grad_norm")
+    )
     assert (model.gamma, model.batch_size, model.loss) == (stored["gamma"], stored["batch_size"], stored["loss"])
     assert isinstance(model.policy.optimizer, OPTIMIZERS[stored["optimizer"]])
     assert model.policy.net_arch == NET_ARCHS[stored["net_arch"]]

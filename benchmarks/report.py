@@ -4,8 +4,8 @@ Turn the runner's JSON lines into ``benchmarks/results/README.md`` (tables, targ
     python -m benchmarks.report [--results benchmarks/results/runs.jsonl] [--out-dir benchmarks/results]
 
 A run that never solved counts as the steps it trained: a statistic that reaches such a value is a lower bound (``≥``).
-Runs of retired configs, or of settings their name no longer holds, get a table of their own and stay out of targets
-and plots. With the default results file, one results table also goes into the top-level README, between its markers.
+Runs of retired configs, or of settings their name no longer holds, stay in the results files, out of the report.
+With the default results file, one results table also goes into the top-level README, between its markers.
 """
 
 import argparse

@@ -268,6 +268,9 @@ class Evaluations(BaseCallback):
         #: [steps, training episodes ended since the previous evaluation, how many of them by termination]
         self.episode_ends: list[list[int]] = []
         self.steps_to_solve: int | None = None
+        #: Training seconds from ``started`` (training's start) to the evaluation that solved, evaluations left out.
+        self.seconds_to_solve: float | None = None
+        self.started = time.perf_counter()
         self.eval_seconds, self.stopped, self.keep_training = 0.0, False, True
         self._next_eval = self._ended = self._terminated = 0
 
@@ -282,13 +285,13 @@ class Evaluations(BaseCallback):
         """Add a point to the learning curve: ``model`` after ``steps`` env steps."""
         start = time.perf_counter()
         mean = float(np.mean(self.returns(model, self.seed_base)))
+        if mean >= self.job.threshold and self.steps_to_solve is None:
+            self.steps_to_solve, self.seconds_to_solve = steps, start - self.started - self.eval_seconds
         self.eval_seconds += time.perf_counter() - start
         self.curve.append([steps, mean])
         self.episode_ends.append([steps, self._ended, self._terminated])
         self._ended = self._terminated = 0
         self._next_eval = (steps // self.job.eval_every + 1) * self.job.eval_every
-        if mean >= self.job.threshold and self.steps_to_solve is None:
-            self.steps_to_solve = steps
 
     def maybe_evaluate(self, steps: int, model: Any) -> bool:
         """Evaluate if a multiple of ``eval_every`` was reached. :return: whether training should go on"""
@@ -395,13 +398,14 @@ def run_job(job: Job) -> dict[str, Any]:
         if job.protocol == "book"
         else None
     )
-    start = time.perf_counter()
+    evaluations.started = start = time.perf_counter()
     model, diverged = train(job, book or evaluations)
     learn_seconds = time.perf_counter() - start
-    final_returns = evaluations.returns(model, final_seed)
+    final_returns, solve_seconds = evaluations.returns(model, final_seed), evaluations.seconds_to_solve
     outcome: dict[str, Any] = {
         "solved": evaluations.steps_to_solve is not None,
         "steps_to_solve": evaluations.steps_to_solve,
+        "train_seconds_to_solve": None if solve_seconds is None else round(solve_seconds, 3),
         "stopped_at_solve": evaluations.stopped,
         "train_episode_ends": evaluations.episode_ends if config.kind != "reference" else None,
     }
@@ -415,6 +419,7 @@ def run_job(job: Job) -> dict[str, Any]:
             "steps_to_solve": criterion.steps_to_solve,
             "episodes_to_solve": criterion.episodes_to_solve,
             "episodes_trained": len(criterion.evaluation_returns),
+            "train_seconds_to_solve": None,  # not measured under the book's criterion
             "stopped_at_solve": criterion.solved,
         }
         eval_seconds, curve = criterion.eval_seconds, book_curve(criterion, job.eval_every)

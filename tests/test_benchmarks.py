@@ -6,6 +6,7 @@ tiny budgets, no mocks.
 
 import json
 import re
+import time
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,24 @@ class PoleAngle:
 
     def predict(self, obs: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True) -> Any:
         return (obs[:, 2] > 0).astype(int), None
+
+
+class Balancer:
+    """A fixed policy that keeps CartPole's pole up to the time limit from most start states."""
+
+    def predict(self, obs: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True) -> Any:
+        return (obs[:, 2] + obs[:, 3] > 0).astype(int), None
+
+
+class Delayed:
+    """``policy``, waiting ``delay`` seconds at each ``predict``."""
+
+    def __init__(self, policy: Any, delay: float) -> None:
+        self.policy, self.delay = policy, delay
+
+    def predict(self, obs: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True) -> Any:
+        time.sleep(self.delay)
+        return self.policy.predict(obs)
 
 
 def test_reference_truncation_bootstraps_and_termination_does_not() -> None:
@@ -140,12 +159,24 @@ def test_evaluation_episode_i_starts_from_reset_seed_base_plus_i() -> None:
         assert sorted(returns) == sorted(expected) and len(set(expected)) > 5
 
 
+def test_seconds_to_solve_count_training_before_the_solving_evaluation_and_no_evaluation() -> None:
+    evaluations = run.Evaluations(_job("nfq-book"), seed_base=1_000_000)
+    evaluations.started = time.perf_counter() - 10.0  # training began 10 s ago
+    evaluations.evaluate(0, Delayed(PoleAngle(), 0.02))  # a slow evaluation, then one that solves, then another
+    evaluations.evaluate(1024, Balancer())
+    evaluations.evaluate(2048, Balancer())
+    assert evaluations.curve[0][1] < 475 <= min(evaluations.curve[1][1], evaluations.curve[2][1])
+    assert evaluations.steps_to_solve == 1024 and evaluations.eval_seconds > 0.5
+    assert evaluations.seconds_to_solve is not None and 10.0 <= evaluations.seconds_to_solve < 10.4
+
+
 @pytest.mark.parametrize("algo", ["nfq-book", "reference-nfq", "dqn-zoo", "qrdqn-zoo"])
 def test_a_job_evaluates_at_step_0_after_each_period_and_at_the_end(algo: str) -> None:
     record = run.run_job(_job(algo, budget=1500))
     assert [steps for steps, _ in record["curve"]] == [0, 1024, record["steps_trained"]]
     assert record["steps_trained"] >= 1500 and record["torch_threads"] == 1
     assert record["final_n_episodes"] == 5 and record["kind"] == configs.resolve(algo, "CartPole-v1").kind
+    assert not record["solved"] and record["train_seconds_to_solve"] is None
     ends = record["train_episode_ends"]
     assert ends is None if algo == "reference-nfq" else [e[0] for e in ends] == [0, 1024, record["steps_trained"]]
     json.dumps(record)
@@ -232,7 +263,8 @@ def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_se
     )
     assert (
         "dqn-zoo-keep-best 6/10 vs qrdqn-zoo-keep-best 9/10" in text
-        and "1.005 (109.7 s / 109.1 s, 2 jobs at a time)" in text
+        and "1.005 (109.7 s / 109.1 s, 2 jobs at a time); to the solve, median: nfq-front-loaded-keep-best not recorded"
+        in text
     )
     assert sum(verdict.strip() == "**not enough data**" for verdict, _ in targets.values()) == 13  # the other envs
     assert "p = 0.534, no difference shown" in text

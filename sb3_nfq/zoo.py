@@ -33,9 +33,8 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch as th
-from stable_baselines3.common.utils import LinearSchedule
 
-from sb3_nfq.configs import ZOO_FILE
+from sb3_nfq.configs import ZOO_FILE, zoo_to_kwargs
 from sb3_nfq.nfq import NFQ
 
 if TYPE_CHECKING:
@@ -119,7 +118,8 @@ def sample_nfq_params(
         sampled["buffer_size"] = trial.suggest_categorical("buffer_size", BUFFER_SIZES)
     if sampled["loss"] == "huber":
         sampled["huber_delta"] = trial.suggest_categorical("huber_delta", HUBER_DELTAS)
-    return convert_nfq_params(sampled)
+    # The zoo applies the sampled values after turning its file's "lin_<x>" strings into schedules: do it here.
+    return zoo_to_kwargs(convert_nfq_params(sampled))
 
 
 def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
@@ -129,13 +129,13 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
 
     :param sampled_params: raw sampled values: NFQ keyword arguments, plus ``net_arch`` and ``optimizer`` as names
         from :data:`NET_ARCHS` and :data:`OPTIMIZERS`, ``lr_schedule`` (``"linear"``: ``learning_rate`` decays
-        linearly to 0 at the budget), and ``fit_cost`` (see :data:`FIT_COST`), which with ``memory`` sets
-        ``gradient_steps``, ``buffer_size`` and the round schedule
+        linearly to 0 at the budget, written as the zoo's ``"lin_<x>"``), and ``fit_cost`` (see :data:`FIT_COST`),
+        which with ``memory`` sets ``gradient_steps``, ``buffer_size`` and the round schedule
     :return: NFQ keyword arguments, with ``net_arch`` and ``optimizer_class`` in ``policy_kwargs``
     """
     hyperparams = dict(sampled_params)
-    if hyperparams.pop("lr_schedule", "constant") == "linear":
-        hyperparams["learning_rate"] = LinearSchedule(hyperparams["learning_rate"], 0.0, 1.0)
+    if hyperparams.pop("lr_schedule", "constant") == "linear":  # the zoo's format, which `--trial-id` reads
+        hyperparams["learning_rate"] = f"lin_{hyperparams['learning_rate']!r}"
     if "fit_cost" in hyperparams:
         growing = hyperparams["memory"] == "growing"
         memory_size = hyperparams["buffer_size"] if growing else hyperparams["train_freq"]

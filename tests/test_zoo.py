@@ -142,7 +142,10 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
     for _ in range(40):
         trial = study.ask()
         hyperparams = sample_nfq_params(trial, 0, 1, {"using_her_replay_buffer": False, "her_kwargs": {}})
-        assert repr(convert_nfq_params(trial.params)) == repr(hyperparams)  # what `--trial-id` reloads
+        converted = convert_nfq_params(trial.params)  # what `--trial-id` reloads, in the zoo's format
+        rate, linear = trial.params["learning_rate"], trial.params["lr_schedule"] == "linear"
+        assert converted["learning_rate"] == (f"lin_{rate!r}" if linear else rate)
+        assert repr(converted | {"learning_rate": 0}) == repr(hyperparams | {"learning_rate": 0})
         growing, huber = trial.params["memory"] == "growing", trial.params["loss"] == "huber"
         assert set(trial.params) == {
             "learning_rate",
@@ -167,8 +170,7 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             fit_cost = trial.params["fit_cost"]
             assert model.gradient_steps == max(1, round(fit_cost * trial.params["train_freq"] / memory_size))
             assert model.round_fraction is None
-        linear = trial.params["lr_schedule"] == "linear"
-        assert model.lr_schedule(0.0) == (0.0 if linear else trial.params["learning_rate"])
+        assert model.lr_schedule(1.0) == pytest.approx(rate) and model.lr_schedule(0.0) == (0.0 if linear else rate)
         study.tell(trial, 0.0)
     assert {trial.params["batch_size"] for trial in study.trials} == set(CATEGORICAL_SPACE["batch_size"])
     assert {trial.params["memory"] for trial in study.trials} == {"fresh", "growing"}

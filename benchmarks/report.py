@@ -100,9 +100,13 @@ class Cell:
         self.steps[self.censored] = [run["steps_trained"] for run in runs if run["steps_to_solve"] is None]
 
     def steps_quantile(self, q: float) -> tuple[float, bool]:
-        """:return: the ``q``-th percentile of the steps to solve, and whether it is only a lower bound"""
+        """
+        :return: the ``q``-th percentile of the steps to solve, and whether it is only a lower bound: whether it
+            depends on an unsolved run's steps (including by interpolating between a solved and an unsolved run)
+        """
         value = float(np.percentile(self.steps, q))
-        return value, bool(self.censored.any() and value >= self.steps[self.censored].min())
+        unsolved_later = np.where(self.censored, 2 * self.steps.max() + 1, self.steps)
+        return value, bool(float(np.percentile(unsolved_later, q)) != value)
 
     def solve_seconds(self) -> str:
         """:return: the median training seconds to the solve (an unsolved run counts its training seconds: ``≥``)"""

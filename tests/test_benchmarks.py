@@ -272,6 +272,18 @@ def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_se
     assert "nfq-tuned" not in text.split("## Targets")[1]  # retired: kept in the results file, out of the report
 
 
+def test_a_median_between_a_solved_and_an_unsolved_run_is_a_lower_bound() -> None:
+    # MountainCar-v0's held-out NFQ runs: 5 of 10 solved, so the median interpolates between the 5th solved run
+    # (103,424) and an unsolved one (120,000 steps trained): it is only a lower bound, and so is its ratio.
+    records = [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["env"] == "MountainCar-v0"]
+    nfq, dqn = report.side_by_side(records, "MountainCar-v0", ["nfq-short-rounds-lr-lin-4e-3-huber-5", "dqn-zoo"])
+    assert nfq.steps_quantile(50) == (111_712.0, True) and nfq.steps_quantile(25) == (50_944.0, False)
+    assert dqn.steps_quantile(50) == (92_160.0, False)
+    verdict, text = report.steps_ratio(nfq, dqn, 0.0, 0.75)
+    assert verdict == "not met" and text.startswith("≥ 1.21 (median of nfq-short-rounds-lr-lin-4e-3-huber-5")
+    assert "≥111,712 [50,944, ≥120,000]" in report.env_table([nfq])
+
+
 def test_readme_table_shows_held_out_rows_where_they_exist(
     recorded: list[dict[str, Any]], held_out: list[dict[str, Any]]
 ) -> None:

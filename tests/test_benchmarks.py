@@ -276,7 +276,9 @@ def test_a_median_between_a_solved_and_an_unsolved_run_is_a_lower_bound() -> Non
     # MountainCar-v0's held-out NFQ runs: 5 of 10 solved, so the median interpolates between the 5th solved run
     # (103,424) and an unsolved one (120,000 steps trained): it is only a lower bound, and so is its ratio.
     records = [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["env"] == "MountainCar-v0"]
-    nfq, dqn = report.side_by_side(records, "MountainCar-v0", ["nfq-short-rounds-lr-lin-4e-3-huber-5", "dqn-zoo"])
+    cells = report.side_by_side(records, "MountainCar-v0", ["nfq-short-rounds-lr-lin-4e-3-huber-5", "dqn-zoo"])
+    assert cells is not None
+    nfq, dqn = cells
     assert nfq.steps_quantile(50) == (111_712.0, True) and nfq.steps_quantile(25) == (50_944.0, False)
     assert dqn.steps_quantile(50) == (92_160.0, False)
     verdict, text = report.steps_ratio(nfq, dqn, 0.0, 0.75)

@@ -81,6 +81,19 @@ def iqm_with_ci(values: np.ndarray, seed: int = 0) -> tuple[float, float, float]
     return point, float(intervals["x"][0, 0]), float(intervals["x"][1, 0])
 
 
+def percentile_with_bound(values: np.ndarray, censored: np.ndarray, q: float) -> tuple[float, bool]:
+    """
+    :param values: one value per run; an unsolved run's (``censored``) is only a lower bound of what solving would take
+    :param censored: which runs did not solve
+    :param q: the percentile
+    :return: the ``q``-th percentile, and whether it is only a lower bound: whether it depends on an unsolved run's
+        value (including by interpolating between a solved and an unsolved run)
+    """
+    value = float(np.percentile(values, q))
+    unsolved_later = np.where(censored, 2 * values.max() + 1, values)
+    return value, bool(float(np.percentile(unsolved_later, q)) != value)
+
+
 class Cell:
     """
     The runs of one algorithm config on one env (one budget, one config hash, one seed set), one per seed.
@@ -101,12 +114,10 @@ class Cell:
 
     def steps_quantile(self, q: float) -> tuple[float, bool]:
         """
-        :return: the ``q``-th percentile of the steps to solve, and whether it is only a lower bound: whether it
-            depends on an unsolved run's steps (including by interpolating between a solved and an unsolved run)
+        :return: the ``q``-th percentile of the steps to solve, and whether it is only a lower bound
+            (:func:`percentile_with_bound`)
         """
-        value = float(np.percentile(self.steps, q))
-        unsolved_later = np.where(self.censored, 2 * self.steps.max() + 1, self.steps)
-        return value, bool(float(np.percentile(unsolved_later, q)) != value)
+        return percentile_with_bound(self.steps, self.censored, q)
 
     def solve_seconds(self) -> str:
         """:return: the median training seconds to the solve (an unsolved run counts its training seconds: ``≥``)"""
@@ -114,8 +125,8 @@ class Cell:
             return "not recorded"
         solve = [run["train_seconds_to_solve"] for run in self.runs]
         seconds = np.array([run["train_seconds"] if s is None else s for run, s in zip(self.runs, solve, strict=True)])
-        median = float(np.median(seconds))
-        return f"{'≥' if self.censored.any() and median >= seconds[self.censored].min() else ''}{median:.1f}"
+        median, lower_bound = percentile_with_bound(seconds, self.censored, 50)
+        return f"{'≥' if lower_bound else ''}{median:.1f}"
 
     def column(self, key: str) -> np.ndarray:
         """:return: one value per run of a numeric record field"""

@@ -272,7 +272,7 @@ def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_se
     assert "nfq-tuned" not in text.split("## Targets")[1]  # retired: kept in the results file, out of the report
 
 
-def test_a_median_between_a_solved_and_an_unsolved_run_is_a_lower_bound() -> None:
+def test_a_median_between_a_solved_and_an_unsolved_run_is_a_lower_bound_in_steps_and_seconds() -> None:
     # MountainCar-v0's held-out NFQ runs: 5 of 10 solved, so the median interpolates between the 5th solved run
     # (103,424) and an unsolved one (120,000 steps trained): it is only a lower bound, and so is its ratio.
     records = [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["env"] == "MountainCar-v0"]
@@ -284,6 +284,7 @@ def test_a_median_between_a_solved_and_an_unsolved_run_is_a_lower_bound() -> Non
     verdict, text = report.steps_ratio(nfq, dqn, 0.0, 0.75)
     assert verdict == "not met" and text.startswith("≥ 1.21 (median of nfq-short-rounds-lr-lin-4e-3-huber-5")
     assert "≥111,712 [50,944, ≥120,000]" in report.env_table([nfq])
+    assert nfq.solve_seconds().startswith("≥") and not dqn.solve_seconds().startswith("≥")  # the same rule for seconds
 
 
 def test_readme_table_shows_held_out_rows_where_they_exist(

@@ -80,9 +80,14 @@ CATEGORICAL_SPACE: dict[str, tuple[bool | int | float | str | None, ...]] = {
 BUFFER_SIZES = (10_000, 20_000, 50_000)
 #: ``huber_delta`` choices, sampled for ``loss="huber"`` only.
 HUBER_DELTAS = (1.0, 5.0, 10.0)
-#: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * M / train_freq`` with ``M``
-#: the memory (one round; or ``buffer_size``, which a growing memory fills). It sets ``gradient_steps`` (at least 1),
-#: and bounds a trial's compute per env step (the book's: 40; the benchmark's growing-memory configs: 156 to 195).
+#: ``fit_epochs`` choices, sampled for ``target_mode="fixed_per_iteration"`` only: at the same ``fit_cost``, more
+#: epochs per iteration mean fewer iterations, so the targets stay fixed over more env steps (as DQN's target network
+#: does between its updates).
+FIT_EPOCHS = (1, 2, 4, 8)
+#: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * fit_epochs * M / train_freq``
+#: with ``M`` the memory (one round; or ``buffer_size``, which a growing memory fills). It sets ``gradient_steps`` (at
+#: least 1), and bounds a trial's compute per env step (the book's: 40; the benchmark's growing-memory configs: 156 to
+#: 195).
 FIT_COST = (5.0, 250.0)
 
 
@@ -118,6 +123,8 @@ def sample_nfq_params(
         sampled["buffer_size"] = trial.suggest_categorical("buffer_size", BUFFER_SIZES)
     if sampled["loss"] == "huber":
         sampled["huber_delta"] = trial.suggest_categorical("huber_delta", HUBER_DELTAS)
+    if sampled["target_mode"] == "fixed_per_iteration":
+        sampled["fit_epochs"] = trial.suggest_categorical("fit_epochs", FIT_EPOCHS)
     # The zoo applies the sampled values after turning its file's "lin_<x>" strings into schedules: do it here.
     return zoo_to_kwargs(convert_nfq_params(sampled))
 
@@ -130,7 +137,7 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     :param sampled_params: raw sampled values: NFQ keyword arguments, plus ``net_arch`` and ``optimizer`` as names
         from :data:`NET_ARCHS` and :data:`OPTIMIZERS`, ``lr_schedule`` (``"linear"``: ``learning_rate`` decays
         linearly to 0 at the budget, written as the zoo's ``"lin_<x>"``), and ``fit_cost`` (see :data:`FIT_COST`),
-        which with ``memory`` sets ``gradient_steps``, ``buffer_size`` and the round schedule
+        which with ``memory`` and ``fit_epochs`` sets ``gradient_steps``, ``buffer_size`` and the round schedule
     :return: NFQ keyword arguments, with ``net_arch`` and ``optimizer_class`` in ``policy_kwargs``
     """
     hyperparams = dict(sampled_params)
@@ -139,8 +146,9 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     if "fit_cost" in hyperparams:
         growing = hyperparams["memory"] == "growing"
         memory_size = hyperparams["buffer_size"] if growing else hyperparams["train_freq"]
-        iterations = round(hyperparams.pop("fit_cost") * hyperparams["train_freq"] / memory_size)
-        hyperparams |= {"gradient_steps": max(1, iterations), "fit_epochs": 1}
+        epochs = hyperparams.get("fit_epochs", 1)  # studies stored before it was searched: 1, as they ran
+        iterations = round(hyperparams.pop("fit_cost") * hyperparams["train_freq"] / (memory_size * epochs))
+        hyperparams |= {"gradient_steps": max(1, iterations), "fit_epochs": epochs}
         hyperparams["buffer_size"] = memory_size if growing else None  # a fresh memory holds one round
         hyperparams |= {"round_fraction": None, "round_fraction_offset": 0}  # rounds of train_freq
     if hyperparams.get("loss", "huber") != "huber":

@@ -159,6 +159,7 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             *CATEGORICAL_SPACE,
             *(["buffer_size"] if growing else []),
             *(["huber_delta"] if huber else []),
+            *(["fit_epochs"] if trial.params["target_mode"] == "fixed_per_iteration" else []),
         }
         assert trial.user_attrs["worker"] == f"{socket.gethostname()}:{os.getpid()}"
         for env_id, entry in entries.items():  # the zoo puts the sampled values over the env's entry
@@ -167,8 +168,9 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             assert model.policy.net_arch == NET_ARCHS[trial.params["net_arch"]]
             assert model.huber_delta == trial.params.get("huber_delta", 1.0)
             memory_size = trial.params.get("buffer_size", trial.params["train_freq"])
-            fit_cost = trial.params["fit_cost"]
-            assert model.gradient_steps == max(1, round(fit_cost * trial.params["train_freq"] / memory_size))
+            fit_cost, epochs = trial.params["fit_cost"], trial.params.get("fit_epochs", 1)
+            assert model.fit_epochs == epochs
+            assert model.gradient_steps == max(1, round(fit_cost * trial.params["train_freq"] / (memory_size * epochs)))
             assert model.round_fraction is None
         assert model.lr_schedule(1.0) == pytest.approx(rate) and model.lr_schedule(0.0) == (0.0 if linear else rate)
         study.tell(trial, 0.0)
@@ -185,6 +187,14 @@ def test_a_study_stored_before_the_growing_memory_was_searched_converts_as_it_di
         "loss": "huber",
         "policy_kwargs": {"net_arch": [64, 64]},
     }
+
+
+def test_fit_epochs_keep_the_fit_cost_with_fewer_iterations_and_a_study_stored_without_it_converts_as_it_ran() -> None:
+    growing = {"memory": "growing", "buffer_size": 10_000, "train_freq": 512, "fit_cost": 78.125, "loss": "mse"}
+    before = convert_nfq_params(growing)  # stored before fit_epochs was searched: one epoch per iteration
+    assert (before["gradient_steps"], before["fit_epochs"]) == (4, 1)
+    after = convert_nfq_params(growing | {"target_mode": "fixed_per_iteration", "fit_epochs": 4})
+    assert (after["gradient_steps"], after["fit_epochs"]) == (1, 4)
 
 
 # --- train, enjoy, tune: the real zoo in subprocesses ---

@@ -168,9 +168,9 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             assert model.policy.net_arch == NET_ARCHS[trial.params["net_arch"]]
             assert model.huber_delta == trial.params.get("huber_delta", 1.0)
             memory_size = trial.params.get("buffer_size", trial.params["train_freq"])
-            fit_cost, epochs = trial.params["fit_cost"], trial.params.get("fit_epochs", 1)
-            assert model.fit_epochs == epochs
-            assert model.gradient_steps == max(1, round(fit_cost * trial.params["train_freq"] / (memory_size * epochs)))
+            epochs = max(1, round(trial.params["fit_cost"] * trial.params["train_freq"] / memory_size))
+            assert model.fit_epochs == min(trial.params.get("fit_epochs", 1), epochs)
+            assert model.gradient_steps * model.fit_epochs == pytest.approx(epochs, rel=0.5)
             assert model.round_fraction is None
         assert model.lr_schedule(1.0) == pytest.approx(rate) and model.lr_schedule(0.0) == (0.0 if linear else rate)
         study.tell(trial, 0.0)
@@ -189,12 +189,15 @@ def test_a_study_stored_before_the_growing_memory_was_searched_converts_as_it_di
     }
 
 
-def test_fit_epochs_keep_the_fit_cost_with_fewer_iterations_and_a_study_stored_without_it_converts_as_it_ran() -> None:
-    growing = {"memory": "growing", "buffer_size": 10_000, "train_freq": 512, "fit_cost": 78.125, "loss": "mse"}
-    before = convert_nfq_params(growing)  # stored before fit_epochs was searched: one epoch per iteration
-    assert (before["gradient_steps"], before["fit_epochs"]) == (4, 1)
-    after = convert_nfq_params(growing | {"target_mode": "fixed_per_iteration", "fit_epochs": 4})
-    assert (after["gradient_steps"], after["fit_epochs"]) == (1, 4)
+def test_fit_epochs_group_a_rounds_epochs_never_fitting_more_and_a_study_stored_without_them_converts_as_run() -> None:
+    def iterations_and_epochs(**params: Any) -> tuple[int, int]:
+        growing = {"memory": "growing", "buffer_size": 10_000, "train_freq": 512, "fit_cost": 78.125, "loss": "mse"}
+        converted = convert_nfq_params(growing | params)  # a round of 78.125 * 512 / 10,000 = 4 epochs
+        return converted["gradient_steps"], converted["fit_epochs"]
+
+    assert iterations_and_epochs() == (4, 1)  # stored before fit_epochs was searched: one epoch per iteration
+    assert iterations_and_epochs(target_mode="fixed_per_iteration", fit_epochs=2) == (2, 2)
+    assert iterations_and_epochs(target_mode="fixed_per_iteration", fit_epochs=8) == (1, 4)  # not 8: twice the fit
 
 
 # --- train, enjoy, tune: the real zoo in subprocesses ---

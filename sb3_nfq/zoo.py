@@ -81,8 +81,9 @@ BUFFER_SIZES = (10_000, 20_000, 50_000)
 #: ``huber_delta`` choices, sampled for ``loss="huber"`` only.
 HUBER_DELTAS = (1.0, 5.0, 10.0)
 #: ``fit_epochs`` choices, sampled for ``target_mode="fixed_per_iteration"`` only: the most epochs of a round (see
-#: :data:`FIT_COST`) that one iteration's fixed targets serve. More epochs per iteration mean fewer iterations at the
-#: same fit, so the targets stay fixed over more env steps (as DQN's target network does between its updates).
+#: :data:`FIT_COST`) that one iteration's fixed targets serve. More epochs per iteration mean fewer iterations at about
+#: the same fit (whole iterations: 0.73x to 1.33x the round's epochs), so the targets stay fixed over more env steps (as
+#: DQN's target network does between its updates).
 FIT_EPOCHS = (1, 2, 4, 8)
 #: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * fit_epochs * M / train_freq``
 #: with ``M`` the memory (one round; or ``buffer_size``, which a growing memory fills). It sets a round's epochs over
@@ -146,12 +147,12 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     if "fit_cost" in hyperparams:
         growing = hyperparams["memory"] == "growing"
         memory_size = hyperparams["buffer_size"] if growing else hyperparams["train_freq"]
-        # The round's epochs over the memory, grouped into iterations of at most fit_epochs epochs each: fit_epochs
-        # changes how long the targets stay fixed, never how much a round fits. Studies stored before it was searched
-        # have none: one epoch per iteration, as they ran.
+        # The round's epochs over the memory, grouped into whole iterations of at most fit_epochs epochs each:
+        # fit_epochs changes how long the targets stay fixed, and how much a round fits only by that rounding. Studies
+        # stored before it was searched have none: one epoch per iteration, as they ran.
         epochs = max(1, round(hyperparams.pop("fit_cost") * hyperparams["train_freq"] / memory_size))
-        per_iteration = min(hyperparams.get("fit_epochs", 1), epochs)
-        hyperparams |= {"gradient_steps": max(1, round(epochs / per_iteration)), "fit_epochs": per_iteration}
+        per_iteration = min(hyperparams.get("fit_epochs", 1), epochs)  # so at least one iteration
+        hyperparams |= {"gradient_steps": round(epochs / per_iteration), "fit_epochs": per_iteration}
         hyperparams["buffer_size"] = memory_size if growing else None  # a fresh memory holds one round
         hyperparams |= {"round_fraction": None, "round_fraction_offset": 0}  # rounds of train_freq
     if hyperparams.get("loss", "huber") != "huber":

@@ -189,7 +189,7 @@ def test_a_study_stored_before_the_growing_memory_was_searched_converts_as_it_di
     }
 
 
-def test_fit_epochs_group_a_rounds_epochs_never_fitting_more_and_a_study_stored_without_them_converts_as_run() -> None:
+def test_fit_epochs_group_a_rounds_epochs_capped_at_its_epochs_and_a_study_without_them_converts_as_run() -> None:
     def iterations_and_epochs(**params: Any) -> tuple[int, int]:
         growing = {"memory": "growing", "buffer_size": 10_000, "train_freq": 512, "fit_cost": 78.125, "loss": "mse"}
         converted = convert_nfq_params(growing | params)  # a round of 78.125 * 512 / 10,000 = 4 epochs

@@ -80,12 +80,7 @@ CATEGORICAL_SPACE: dict[str, tuple[bool | int | float | str | None, ...]] = {
 BUFFER_SIZES = (10_000, 20_000, 50_000)
 #: ``huber_delta`` choices, sampled for ``loss="huber"`` only.
 HUBER_DELTAS = (1.0, 5.0, 10.0)
-#: ``fit_epochs`` choices, sampled for ``target_mode="fixed_per_iteration"`` only: the most epochs of a round (see
-#: :data:`FIT_COST`) that one iteration's fixed targets serve. More epochs per iteration mean fewer iterations at about
-#: the same fit (whole iterations: 0.73x to 1.33x the round's epochs), so the targets stay fixed over more env steps (as
-#: DQN's target network does between its updates).
-FIT_EPOCHS = (1, 2, 4, 8)
-#: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * fit_epochs * M / train_freq``
+#: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * M / train_freq``
 #: with ``M`` the memory (one round; or ``buffer_size``, which a growing memory fills). It sets a round's epochs over
 #: the memory (at least 1), and bounds a trial's compute per env step (the book's: 40; the benchmark's growing-memory
 #: configs: 156 to 195).
@@ -124,8 +119,6 @@ def sample_nfq_params(
         sampled["buffer_size"] = trial.suggest_categorical("buffer_size", BUFFER_SIZES)
     if sampled["loss"] == "huber":
         sampled["huber_delta"] = trial.suggest_categorical("huber_delta", HUBER_DELTAS)
-    if sampled["target_mode"] == "fixed_per_iteration":
-        sampled["fit_epochs"] = trial.suggest_categorical("fit_epochs", FIT_EPOCHS)
     # The zoo applies the sampled values after turning its file's "lin_<x>" strings into schedules: do it here.
     return zoo_to_kwargs(convert_nfq_params(sampled))
 
@@ -138,7 +131,8 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     :param sampled_params: raw sampled values: NFQ keyword arguments, plus ``net_arch`` and ``optimizer`` as names
         from :data:`NET_ARCHS` and :data:`OPTIMIZERS`, ``lr_schedule`` (``"linear"``: ``learning_rate`` decays
         linearly to 0 at the budget, written as the zoo's ``"lin_<x>"``), and ``fit_cost`` (see :data:`FIT_COST`),
-        which with ``memory`` and ``fit_epochs`` sets ``gradient_steps``, ``buffer_size`` and the round schedule
+        which with ``memory`` sets ``gradient_steps``, ``buffer_size`` and the round schedule; a stored trial's
+        ``fit_epochs`` (searched in studies of the past) groups those epochs into iterations
     :return: NFQ keyword arguments, with ``net_arch`` and ``optimizer_class`` in ``policy_kwargs``
     """
     hyperparams = dict(sampled_params)
@@ -147,9 +141,9 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     if "fit_cost" in hyperparams:
         growing = hyperparams["memory"] == "growing"
         memory_size = hyperparams["buffer_size"] if growing else hyperparams["train_freq"]
-        # The round's epochs over the memory, grouped into whole iterations of at most fit_epochs epochs each:
-        # fit_epochs changes how long the targets stay fixed, and how much a round fits only by that rounding. Studies
-        # stored before it was searched have none: one epoch per iteration, as they ran.
+        # The round's epochs over the memory, one per iteration. A trial stored with fit_epochs ran them grouped into
+        # whole iterations of at most fit_epochs epochs each (the rounding fits 0.73x to 1.33x the round's epochs):
+        # it converts as it ran.
         epochs = max(1, round(hyperparams.pop("fit_cost") * hyperparams["train_freq"] / memory_size))
         per_iteration = min(hyperparams.get("fit_epochs", 1), epochs)  # so at least one iteration
         hyperparams |= {"gradient_steps": round(epochs / per_iteration), "fit_epochs": per_iteration}

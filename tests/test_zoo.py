@@ -159,7 +159,6 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             *CATEGORICAL_SPACE,
             *(["buffer_size"] if growing else []),
             *(["huber_delta"] if huber else []),
-            *(["fit_epochs"] if trial.params["target_mode"] == "fixed_per_iteration" else []),
         }
         assert trial.user_attrs["worker"] == f"{socket.gethostname()}:{os.getpid()}"
         for env_id, entry in entries.items():  # the zoo puts the sampled values over the env's entry
@@ -169,8 +168,7 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             assert model.huber_delta == trial.params.get("huber_delta", 1.0)
             memory_size = trial.params.get("buffer_size", trial.params["train_freq"])
             epochs = max(1, round(trial.params["fit_cost"] * trial.params["train_freq"] / memory_size))
-            assert model.fit_epochs == min(trial.params.get("fit_epochs", 1), epochs)
-            assert model.gradient_steps * model.fit_epochs == pytest.approx(epochs, rel=0.5)
+            assert (model.gradient_steps, model.fit_epochs) == (epochs, 1)
             assert model.round_fraction is None
         assert model.lr_schedule(1.0) == pytest.approx(rate) and model.lr_schedule(0.0) == (0.0 if linear else rate)
         study.tell(trial, 0.0)
@@ -189,13 +187,13 @@ def test_a_study_stored_before_the_growing_memory_was_searched_converts_as_it_di
     }
 
 
-def test_fit_epochs_group_a_rounds_epochs_capped_at_its_epochs_and_a_study_without_them_converts_as_run() -> None:
+def test_a_trial_stored_with_fit_epochs_converts_as_it_ran_its_rounds_epochs_grouped_and_capped() -> None:
     def iterations_and_epochs(**params: Any) -> tuple[int, int]:
         growing = {"memory": "growing", "buffer_size": 10_000, "train_freq": 512, "fit_cost": 78.125, "loss": "mse"}
         converted = convert_nfq_params(growing | params)  # a round of 78.125 * 512 / 10,000 = 4 epochs
         return converted["gradient_steps"], converted["fit_epochs"]
 
-    assert iterations_and_epochs() == (4, 1)  # stored before fit_epochs was searched: one epoch per iteration
+    assert iterations_and_epochs() == (4, 1)  # without fit_epochs: one epoch per iteration
     assert iterations_and_epochs(target_mode="fixed_per_iteration", fit_epochs=2) == (2, 2)
     assert iterations_and_epochs(target_mode="fixed_per_iteration", fit_epochs=8) == (1, 4)  # not 8: twice the fit
 

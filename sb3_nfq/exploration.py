@@ -1,4 +1,7 @@
-"""How NFQ acts: epsilon-greedy, with one coin flip per observation, and the greedy action of the Q-network."""
+"""
+How NFQ acts: epsilon-greedy, with one coin flip per observation, or its temporally-extended form while collecting
+(a random action repeated for a random number of steps); and the greedy action of the Q-network.
+"""
 
 from collections.abc import Callable
 from typing import Any
@@ -37,6 +40,39 @@ def epsilon_greedy(
     if explore.all():  # the network is only needed where some observation acts greedily
         return actions
     return np.where(explore, actions, np.reshape(greedy(), n_obs))
+
+
+def repeated_epsilon_greedy(
+    epsilon: float,
+    action_space: spaces.Space,
+    repeat_mu: float,
+    steps_left: np.ndarray,
+    repeated: np.ndarray,
+    greedy: Callable[[], np.ndarray],
+) -> np.ndarray:
+    """
+    Temporally-extended epsilon-greedy ("ez-greedy": W. Dabney, G. Ostrovski, A. Barreto, ICLR 2021). An env that is
+    not repeating an action flips the epsilon coin; on heads it draws a random action and a duration
+    ``n ~ Zeta(repeat_mu)`` (``P(n) ~ n^-repeat_mu``, ``n >= 1``), and takes that action for the next ``n`` steps.
+
+    :param epsilon: probability that an env which is not repeating an action starts a random one
+    :param action_space: a ``Discrete`` action space
+    :param repeat_mu: the exponent of the durations' zeta distribution, > 1 (smaller: longer repeats)
+    :param steps_left: for each env, the steps its random action still lasts (0: none); updated in place
+    :param repeated: for each env, the random action it repeats; updated in place
+    :param greedy: gives the greedy actions of the envs' observations (called only if one of them acts greedily)
+    :return: one action per env
+    """
+    assert isinstance(action_space, spaces.Discrete)
+    n_envs = len(steps_left)
+    start = (steps_left == 0) & (np.random.rand(n_envs) < epsilon)
+    steps_left[start] = np.random.zipf(repeat_mu, int(start.sum()))
+    repeated[start] = np.random.randint(int(action_space.n), size=int(start.sum()))
+    repeating = steps_left > 0
+    steps_left[repeating] -= 1
+    if repeating.all():
+        return repeated.copy()
+    return np.where(repeating, repeated, np.reshape(greedy(), n_envs))
 
 
 def epsilon_greedy_predict(

@@ -23,7 +23,13 @@ from stable_baselines3.common.utils import LinearSchedule, configure_logger
 
 from sb3_nfq import rounds
 from sb3_nfq.checkpoints import check_nfq_checkpoint, drop_retired, safe_custom_objects, train_freq_json
-from sb3_nfq.exploration import epsilon_greedy, epsilon_greedy_predict, greedy_actions, reject_obs_info_pair
+from sb3_nfq.exploration import (
+    epsilon_greedy,
+    epsilon_greedy_predict,
+    greedy_actions,
+    reject_obs_info_pair,
+    repeated_epsilon_greedy,
+)
 from sb3_nfq.fitting import (
     check_loss_is_finite,
     check_q_values_bounded,
@@ -88,6 +94,11 @@ class NFQ(OffPolicyAlgorithm):
         to its final value, in (0, 1]; refused, unless the default, when the two are equal
     :param exploration_initial_eps: Initial probability of a random action while collecting
     :param exploration_final_eps: Final probability of a random action while collecting
+    :param exploration_repeat_mu: ``None`` (textbook): a random action lasts one step. A number ``mu > 1``:
+        temporally-extended epsilon-greedy while collecting (Dabney et al., 2021, whose choice is 2.0): a random
+        action is taken for ``n ~ Zeta(mu)`` steps (``P(n) ~ n^-mu``; smaller ``mu``, longer repeats) or until the
+        episode ends, and epsilon is the chance of starting one. ``predict(deterministic=False)`` stays
+        epsilon-greedy, one step at a time
     :param max_grad_norm: Clip the gradient norm to this value; ``None`` (textbook): no clipping
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
@@ -134,6 +145,7 @@ class NFQ(OffPolicyAlgorithm):
         exploration_fraction: float = DEFAULT_EXPLORATION_FRACTION,
         exploration_initial_eps: float = 0.5,
         exploration_final_eps: float = 0.5,
+        exploration_repeat_mu: float | None = None,
         max_grad_norm: float | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -177,6 +189,7 @@ class NFQ(OffPolicyAlgorithm):
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
         self.exploration_fraction = exploration_fraction
+        self.exploration_repeat_mu = exploration_repeat_mu
         self.max_grad_norm = max_grad_norm
         # Probability of a random action while collecting ("epsilon" of epsilon-greedy)
         self.exploration_rate = exploration_initial_eps
@@ -191,6 +204,9 @@ class NFQ(OffPolicyAlgorithm):
         # The largest |reward| fitted so far, and whether this learn() has warned that Q-values passed what it allows.
         self._max_abs_reward = 0.0
         self._q_bound_warned = False
+        # With exploration_repeat_mu: for each env, the steps its random action still lasts, and that action.
+        self._repeat_steps_left: np.ndarray | None = None
+        self._repeated_actions: np.ndarray | None = None
 
         if _init_setup_model:
             self._setup_model()
@@ -308,6 +324,8 @@ class NFQ(OffPolicyAlgorithm):
         saved with a model always matches the memory; a round longer than the memory stops with an error at once.
         """
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        if self._repeat_steps_left is not None:
+            self._repeat_steps_left[dones] = 0  # a repeated random action ends with its episode
         self._round_steps += 1
         self._round_episodes += int(np.sum(dones))
         rounds.check_round_fits(self._round_steps, replay_buffer, self.buffer_size, self._n_rounds + 1)
@@ -453,7 +471,8 @@ class NFQ(OffPolicyAlgorithm):
     ) -> tuple[np.ndarray, np.ndarray]:
         """
         The behaviour policy while collecting: epsilon-greedy for the ``n_envs`` current observations, drawn
-        exactly as ``predict(deterministic=False)`` draws them.
+        exactly as ``predict(deterministic=False)`` draws them; with ``exploration_repeat_mu``, its temporally-extended
+        form, which carries each env's repeated random action over from step to step.
 
         :param learning_starts: unused (NFQ has no warm-up)
         :param action_noise: unused (discrete actions)
@@ -462,8 +481,22 @@ class NFQ(OffPolicyAlgorithm):
         """
         assert self._last_obs is not None
         last_obs = self._last_obs
-        actions = epsilon_greedy(
-            self.exploration_rate, self.action_space, n_envs, lambda: greedy_actions(self.policy, last_obs)
+        if self.exploration_repeat_mu is None:
+            actions = epsilon_greedy(
+                self.exploration_rate, self.action_space, n_envs, lambda: greedy_actions(self.policy, last_obs)
+            )
+            return actions, actions
+        if self._repeat_steps_left is None or len(self._repeat_steps_left) != n_envs:
+            self._repeat_steps_left = np.zeros(n_envs, dtype=np.int64)
+            self._repeated_actions = np.zeros(n_envs, dtype=np.int64)
+        assert self._repeated_actions is not None
+        actions = repeated_epsilon_greedy(
+            self.exploration_rate,
+            self.action_space,
+            self.exploration_repeat_mu,
+            self._repeat_steps_left,
+            self._repeated_actions,
+            lambda: greedy_actions(self.policy, last_obs),
         )
         return actions, actions
 
@@ -525,7 +558,8 @@ class NFQ(OffPolicyAlgorithm):
         super().set_parameters(drop_retired(vars(self), load_path_or_dict, device), exact_match, device)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "q_net"]
+        # The repeats in progress belong to the envs of this learn(): a loaded model starts without any.
+        return [*super()._excluded_save_params(), "q_net", "_repeat_steps_left", "_repeated_actions"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "policy.optimizer"], []

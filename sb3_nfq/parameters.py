@@ -156,6 +156,7 @@ def check_hyperparameters(
     exploration_fraction: float,
     exploration_initial_eps: float,
     exploration_final_eps: float,
+    exploration_repeat_mu: float | None,
     max_grad_norm: float | None,
 ) -> None:
     """Fail early, naming the parameter and its allowed values."""
@@ -231,6 +232,12 @@ def check_hyperparameters(
             f"exploration_fraction={exploration_fraction} sets how long epsilon takes to go from "
             f"exploration_initial_eps to exploration_final_eps, but both are {exploration_final_eps} (NFQ's default "
             "is the textbook's constant 0.5): set them apart (DQN's are 1.0 and 0.05) or drop exploration_fraction"
+        )
+    repeat_mu = exploration_repeat_mu
+    if repeat_mu is not None and not (_is_positive_number(repeat_mu) and repeat_mu > 1):
+        raise ValueError(
+            "exploration_repeat_mu must be None (random actions of one step) or a number > 1 (the exponent of the "
+            f"zeta distribution of their durations; 2.0 is the ez-greedy paper's), got {exploration_repeat_mu!r}"
         )
     if max_grad_norm is not None and not max_grad_norm > 0:
         raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")

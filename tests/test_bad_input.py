@@ -43,6 +43,8 @@ from tests.envs import NaNRewardAfter
         ({"exploration_final_eps": -0.1}, r"exploration_final_eps must be a probability in \[0, 1\]"),
         ({"exploration_fraction": 0.0}, r"exploration_fraction must be in \(0, 1\]"),
         ({"max_grad_norm": 0.0}, "max_grad_norm must be positive or None"),
+        ({"exploration_repeat_mu": 1.0}, r"exploration_repeat_mu must be None .* or a number > 1 .*, got 1.0"),
+        ({"exploration_repeat_mu": "2"}, r"exploration_repeat_mu must be None .* or a number > 1 .*, got '2'"),
         ({"buffer_size": 100_000}, r"buffer_size=100000 has no effect with memory='fresh'.*memory='growing'"),
         ({"buffer_size": 1024, "train_freq": 1024}, "buffer_size=1024 has no effect with memory='fresh'"),
         ({"exploration_fraction": 0.2}, r"exploration_fraction=0.2 .* both are 0.5.*set them apart"),

@@ -1,5 +1,9 @@
-"""Beyond the book: the growing memory, fixed targets per iteration (classic FQI) and Rprop."""
+"""
+Beyond the book: the growing memory, fixed targets per iteration (classic FQI), Rprop, and random actions repeated
+over several steps (temporally-extended epsilon-greedy).
+"""
 
+import itertools
 import warnings
 from pathlib import Path
 from typing import Any
@@ -7,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.save_util import load_from_zip_file
@@ -324,3 +329,64 @@ def test_textbook_rounds_do_not_lengthen() -> None:
     fitting = record_fitting(model)
     model.learn(256)
     assert [len(x) for x in fitting.grad_inputs] == [64, 128, 192, 256]
+
+
+# --- random actions repeated over several steps (exploration_repeat_mu) ------------------------------------------
+
+
+class EpisodeActions(BaseCallback):
+    """Record, for each env, the actions of each of its episodes."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.episodes: list[list[int]] = []
+        self.current: dict[int, list[int]] = {}
+
+    def _on_step(self) -> bool:
+        for env, (action, done) in enumerate(zip(self.locals["actions"], self.locals["dones"], strict=True)):
+            self.current.setdefault(env, []).append(int(action))
+            if done:
+                self.episodes.append(self.current.pop(env))
+        return True
+
+
+@pytest.mark.parametrize("n_envs", [1, 2])
+def test_a_repeated_random_action_lasts_its_episode_and_the_next_episode_draws_again(n_envs: int) -> None:
+    # Every action is random (epsilon 1), and durations from Zeta(1.01) are almost all longer than a CartPole episode
+    # that pushes one way (about 10 steps): each episode pushes one way, and each draws its own side.
+    model = NFQ(
+        "MlpPolicy",
+        make_vec_env("CartPole-v1", n_envs=n_envs, seed=0),
+        exploration_initial_eps=1.0,
+        exploration_final_eps=1.0,
+        exploration_repeat_mu=1.01,
+        train_freq=512,
+        gradient_steps=1,
+        seed=0,
+    )
+    recorder = EpisodeActions()
+    model.learn(2048, callback=recorder)
+
+    episodes = recorder.episodes
+    assert len(episodes) > 100
+    one_way = sum(len(set(actions)) == 1 for actions in episodes)
+    assert one_way >= 0.9 * len(episodes)  # epsilon-greedy: 2 * 0.5 ** 9 or less of the episodes
+    first_actions = [actions[0] for actions in episodes]
+    assert 0.3 < np.mean(first_actions) < 0.7  # a repeat carried over to the next episode would make them equal
+
+
+def test_repeated_exploration_is_kept_by_save_and_load_and_a_loaded_model_collects_with_it(tmp_path: Path) -> None:
+    always_random: dict[str, Any] = {"exploration_initial_eps": 1.0, "exploration_final_eps": 1.0}
+    model = NFQ("MlpPolicy", "CartPole-v1", exploration_repeat_mu=2.0, train_freq=64, gradient_steps=1, **always_random)
+    model.learn(128)  # most likely mid-repeat
+    model.save(tmp_path / "model.zip")
+    saved, _, _ = load_from_zip_file(tmp_path / "model.zip")
+    assert saved is not None and "_repeat_steps_left" not in saved
+
+    loaded = NFQ.load(tmp_path / "model.zip", env=model.get_env())
+    assert loaded.exploration_repeat_mu == 2.0
+    recorder = EpisodeActions()
+    loaded.learn(1024, reset_num_timesteps=False, callback=recorder)
+    pairs = [(a, b) for actions in recorder.episodes for a, b in itertools.pairwise(actions)]
+    # One random action a step repeats the last one half the time; Zeta(2) durations, about 4 times in 5.
+    assert np.mean([a == b for a, b in pairs]) > 0.65

@@ -18,6 +18,7 @@ import yaml
 
 import sb3_nfq
 from benchmarks import configs, report, run
+from sb3_nfq.configs import ZOO_KEYS, read_entry
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
 
 RESULTS = run.DEFAULT_RESULTS.parent
@@ -113,6 +114,17 @@ def test_configs_resolve_every_algorithm_on_every_env_and_refuse_unknown_names()
     assert not set(configs.SEEDS) & set(configs.HELD_OUT_SEEDS)
     with pytest.raises(KeyError, match="unknown algorithm config 'nfq-tuned'"):
         configs.resolve("nfq-tuned", "CartPole-v1")
+
+
+def test_the_shipped_file_holds_the_settings_each_of_its_entries_was_measured_with() -> None:
+    for entry_name, algo in configs.SHIPPED.items():
+        entry = read_entry(entry_name)
+        measured = configs.resolve(algo, entry_name if entry_name in configs.ENVS else "LunarLander-v3")
+        if entry_name in configs.ENVS:
+            assert entry["n_timesteps"] == measured.budget, entry_name
+        keep_best = measured.kwargs.pop("keep_best", False)
+        assert ("callback" in entry) == keep_best, entry_name
+        assert {key: value for key, value in entry.items() if key not in ZOO_KEYS} == measured.kwargs, entry_name
 
 
 def test_configs_refuse_an_entry_that_normalizes_the_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

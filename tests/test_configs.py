@@ -41,9 +41,9 @@ def test_the_entries_are_the_configs_measured_for_them() -> None:
     # CartPole: nfq-front-loaded-keep-best, its keep_best now the callback
     assert (cartpole["round_fraction"], cartpole["round_fraction_offset"], cartpole["train_freq"]) == (0.4, 4000, 128)
     assert cartpole["callback"] == "sb3_nfq.KeepBestCallback" and "keep_best" not in cartpole
-    # default: nfq-short-rounds-lr-lin-4e-3-huber-5, MountainCar's config, with a budget of its own
+    # default: nfq-short-rounds-lr-lin-4e-3-huber-5, and MountainCar's config with one-step random actions
     assert (default["loss"], default["huber_delta"], default["learning_rate"]) == ("huber", 5.0, "lin_0.004")
-    assert {**mountain_car, "n_timesteps": 0} == {**default, "n_timesteps": 0}
+    assert {**mountain_car, "n_timesteps": 0} == {**default, "n_timesteps": 0, "exploration_repeat_mu": 2.0}
     assert (read_entry("Acrobot-v1")["buffer_size"], read_entry("LunarLander-v3")["learning_rate"]) == (10_000, 0.0005)
 
 

@@ -53,9 +53,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-capped-10k",
     "nfq-short-rounds",
     "nfq-short-rounds-lr-lin-4e-3-huber-5",
-    "nfq-short-rounds-10k-eps-0.2",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
-    "nfq-short-rounds-10k-eps-0.2-ez-2",
 )
 #: The benchmark config each entry of the shipped sb3_nfq/hyperparams/nfq.yml was measured as.
 SHIPPED: dict[str, str] = {

@@ -18,8 +18,8 @@ import yaml
 
 import sb3_nfq
 from benchmarks import configs, report, run
-from sb3_nfq.configs import ZOO_KEYS, read_entry
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
+from sb3_nfq.configs import ZOO_KEYS, read_entry
 
 RESULTS = run.DEFAULT_RESULTS.parent
 

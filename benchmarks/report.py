@@ -538,16 +538,19 @@ def readme_table(
     records: Sequence[dict[str, Any]], book_records: Sequence[dict[str, Any]], held_out: Sequence[dict[str, Any]] = ()
 ) -> str:
     """
-    :return: the top-level README's results table: per env, the shipped config against both peers on every held-out
-        seed (selected alike; until all have run: against dqn-zoo on the development seeds, which chose it), run side
-        by side (:func:`side_by_side`), and the fidelity row (the book's protocol), each with its command
+    :return: the top-level README's results table: per env, the shipped config against both peers on the held-out
+        seeds (selected alike; the row says how many have run, until all have; before any: against dqn-zoo on the
+        development seeds, which chose it), run side by side (:func:`side_by_side`), and the fidelity row (the book's
+        protocol), each with its command
     """
     rows = []
     for env in configs.ENVS:
         algo = configs.SHIPPED[env]
         cells = side_by_side(held_out, env, [algo, *peers_of(algo)])
-        if cells and not _missing(cells):
-            rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (held out)"))
+        if cells:
+            have = min(cell.n for cell in cells)
+            so_far = f": {have} of {len(configs.HELD_OUT_SEEDS)} seeds so far" if _missing(cells) else ""
+            rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (held out{so_far})"))
         elif cells := side_by_side(records, env, [algo, peers_of(configs.ONE_CONFIG)[0]]):
             rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (chose the config)"))
     cells_by_algo = book_cells(book_records)

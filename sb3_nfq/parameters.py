@@ -233,8 +233,9 @@ def check_hyperparameters(
             f"exploration_initial_eps to exploration_final_eps, but both are {exploration_final_eps} (NFQ's default "
             "is the textbook's constant 0.5): set them apart (DQN's are 1.0 and 0.05) or drop exploration_fraction"
         )
-    repeat_mu = exploration_repeat_mu
-    if repeat_mu is not None and not (_is_positive_number(repeat_mu) and repeat_mu > 1):
+    if exploration_repeat_mu is not None and not (
+        _is_positive_number(exploration_repeat_mu) and exploration_repeat_mu > 1
+    ):
         raise ValueError(
             "exploration_repeat_mu must be None (random actions of one step) or a number > 1 (the exponent of the "
             f"zeta distribution of their durations; 2.0 is the ez-greedy paper's), got {exploration_repeat_mu!r}"

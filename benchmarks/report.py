@@ -548,8 +548,8 @@ def readme_table(
         algo = configs.SHIPPED[env]
         cells = side_by_side(held_out, env, [algo, *peers_of(algo)])
         if cells:
-            have = min(cell.n for cell in cells)
-            so_far = f": {have} of {len(configs.HELD_OUT_SEEDS)} seeds so far" if _missing(cells) else ""
+            have, n_seeds = min(cell.n for cell in cells), len(configs.HELD_OUT_SEEDS)
+            so_far = f": {have} of {n_seeds} seeds so far" if have < n_seeds else ""
             rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (held out{so_far})"))
         elif cells := side_by_side(records, env, [algo, peers_of(configs.ONE_CONFIG)[0]]):
             rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (chose the config)"))

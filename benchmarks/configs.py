@@ -64,8 +64,8 @@ SHIPPED: dict[str, str] = {
     "LunarLander-v3": "nfq-short-rounds",
     "default": "nfq-short-rounds-lr-lin-4e-3-huber-5",
 }
-#: The one config run unchanged on every env.
-ONE_CONFIG = "nfq-short-rounds-lr-lin-4e-3-huber-5"
+#: The one config run unchanged on every env: the shipped file's entry for a new problem.
+ONE_CONFIG = SHIPPED["default"]
 #: The plain-PyTorch reference (benchmarks/reference_nfq.py), with nfq-book's budget: the same textbook settings.
 REFERENCE = "reference-nfq"
 #: The peers: name -> (kind, the rl_zoo3 hyperparameters file).

@@ -19,7 +19,7 @@ import yaml
 import sb3_nfq
 from benchmarks import configs, report, run
 from benchmarks.reference_nfq import ReferenceNFQ, Transitions, fit_q_network, make_q_network, td_targets
-from sb3_nfq.configs import ZOO_KEYS, read_entry
+from sb3_nfq.configs import ZOO_FILE, ZOO_KEYS, read_entry
 
 RESULTS = run.DEFAULT_RESULTS.parent
 
@@ -117,7 +117,10 @@ def test_configs_resolve_every_algorithm_on_every_env_and_refuse_unknown_names()
 
 
 def test_the_shipped_file_holds_the_settings_each_of_its_entries_was_measured_with() -> None:
+    text = ZOO_FILE.read_text()
     for entry_name, algo in configs.SHIPPED.items():
+        comment = re.search(rf"((?:^#.*\n)+){re.escape(entry_name)}:", text, re.MULTILINE)
+        assert comment is not None and re.findall(r"Measured as ([\w.-]*\w)", comment.group(1)) == [algo], entry_name
         entry = read_entry(entry_name)
         measured = configs.resolve(algo, entry_name if entry_name in configs.ENVS else "LunarLander-v3")
         if entry_name in configs.ENVS:

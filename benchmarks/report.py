@@ -272,16 +272,20 @@ def jobs_at_once(records: Sequence[dict[str, Any]]) -> float:
 def side_by_side(records: Sequence[dict[str, Any]], env: str, algos: Sequence[str]) -> list[Cell] | None:
     """
     :return: a cell per algo of its runs on ``env`` trained to the budget by runner commands that ran all of ``algos``
-        (same machine, same session), pooled over such commands (a seed run twice keeps its first run); ``None`` if
-        no command ran them all
+        (same machine, same session), pooled over such commands at the finest evaluation period any of them used (the
+        finer grid measures the steps to solve more closely; periods are never mixed; a seed run twice keeps its first
+        run); ``None`` if no command ran them all
     """
-    by_command: dict[str, dict[str, dict[int, dict[str, Any]]]] = {}
+    by_command: dict[tuple[str, int], dict[str, dict[int, dict[str, Any]]]] = {}
     for record in records:
         if record["env"] == env and record["algo"] in algos and not record.get("stop_at_solve"):
-            by_seed = by_command.setdefault(record["command"], {algo: {} for algo in algos})[record["algo"]]
+            command = (record["command"], int(record["eval_every"]))
+            by_seed = by_command.setdefault(command, {algo: {} for algo in algos})[record["algo"]]
             by_seed.setdefault(int(record["seed"]), record)
+    complete = {command: runs for command, runs in by_command.items() if all(runs.values())}
+    finest = min((period for _, period in complete), default=None)
     pooled: dict[str, dict[int, dict[str, Any]]] = {algo: {} for algo in algos}
-    for runs in (runs for runs in by_command.values() if all(runs.values())):
+    for runs in (runs for (_, period), runs in complete.items() if period == finest):
         for algo in algos:
             pooled[algo] = runs[algo] | pooled[algo]
     return [Cell([pooled[a][s] for s in sorted(pooled[a])]) for a in algos] if all(pooled.values()) else None
@@ -664,7 +668,8 @@ def build_report(
         f"From `{TARGETS_FILE.relative_to(REPO_ROOT)}`; the shipped config of each env (`benchmarks.configs.SHIPPED`): "
         + ", ".join(f"{env} {algo}" for env, algo in configs.SHIPPED.items() if env in configs.ENVS)
         + f". Peers: {', '.join(configs.ZOO_PEERS)}, with `sb3_nfq.KeepBestCallback` (`-keep-best`) where the shipped "
-        "config ends on its best fit. Held-out runs side by side: runs of one runner command, pooled over commands.",
+        "config ends on its best fit. Held-out runs side by side: runs of one runner command, pooled over commands at "
+        "the finest evaluation period they ran.",
         "",
         pd.DataFrame(readings, columns=["target", "verdict", "measured"])
         .assign(verdict=lambda frame: "**" + frame["verdict"] + "**")

@@ -81,11 +81,14 @@ def package_versions() -> dict[str, str]:
 
 
 def git_revision() -> str | None:
-    """:return: the repository's commit (with ``+dirty`` if sb3_nfq/ or benchmarks/ have local changes), if known"""
+    """
+    :return: the repository's commit (with ``+dirty`` if the code or configs of sb3_nfq/ or benchmarks/ have local
+        changes; the results files, which runs append to, do not count), if known
+    """
     git = ["git", "-C", str(REPO_ROOT)]
     try:
         commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
-        status = [*git, "status", "--porcelain", "--", "sb3_nfq", "benchmarks"]
+        status = [*git, "status", "--porcelain", "--", "sb3_nfq", "benchmarks", ":!benchmarks/results"]
         dirty = subprocess.run(status, capture_output=True, text=True, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return None

@@ -274,7 +274,7 @@ def side_by_side(records: Sequence[dict[str, Any]], env: str, algos: Sequence[st
     :return: a cell per algo of its runs on ``env`` trained to the budget by runner commands that ran all of ``algos``
         (same machine, same session), pooled over such commands at the finest evaluation period any of them used (the
         finer grid measures the steps to solve more closely; periods are never mixed; a seed run twice keeps its first
-        run); ``None`` if no command ran them all
+        run), on the seeds every algo ran; ``None`` if no command ran them all
     """
     by_command: dict[tuple[str, int], dict[str, dict[int, dict[str, Any]]]] = {}
     for record in records:
@@ -288,7 +288,8 @@ def side_by_side(records: Sequence[dict[str, Any]], env: str, algos: Sequence[st
     for runs in (runs for (_, period), runs in complete.items() if period == finest):
         for algo in algos:
             pooled[algo] = runs[algo] | pooled[algo]
-    return [Cell([pooled[a][s] for s in sorted(pooled[a])]) for a in algos] if all(pooled.values()) else None
+    seeds = sorted(set.intersection(*(set(runs) for runs in pooled.values())))
+    return [Cell([pooled[a][s] for s in seeds]) for a in algos] if seeds else None
 
 
 def _ran(cells: Sequence[Cell]) -> str:

@@ -302,7 +302,7 @@ def test_a_median_between_a_solved_and_an_unsolved_run_is_a_lower_bound_in_steps
     assert nfq.solve_seconds().startswith("≥") and not dqn.solve_seconds().startswith("≥")  # the same rule for seconds
 
 
-def test_side_by_side_pools_only_the_commands_at_the_finest_evaluation_period() -> None:
+def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_seeds_every_algo_ran() -> None:
     # dqn-zoo's held-out CartPole-v1 runs: seeds 5-14 by a command evaluating every 256 steps and by one evaluating
     # every 1,024 (in either order in the file, the finer grid's runs are the ones compared; the two never mix).
     records = [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["env"] == "CartPole-v1"]
@@ -311,6 +311,12 @@ def test_side_by_side_pools_only_the_commands_at_the_finest_evaluation_period() 
         cells = report.side_by_side(ordered, "CartPole-v1", ["dqn-zoo"])
         assert cells is not None and {r["eval_every"] for r in cells[0].runs} == {256}
         assert cells[0].n == 10 and cells[0].steps_quantile(50) == (12_160.0, False)
+    # LunarLander-v3's first held-out command stopped part-way: only the seeds every algo ran are compared.
+    algos = ["nfq-short-rounds", "dqn-zoo", "qrdqn-zoo"]
+    records = [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["env"] == "LunarLander-v3"]
+    assert {r["seed"] for r in records if r["algo"] == algos[0]} > {r["seed"] for r in records if r["algo"] == algos[2]}
+    cells = report.side_by_side(records, "LunarLander-v3", algos)
+    assert cells is not None and [[r["seed"] for r in cell.runs] for cell in cells] == [[5, 6]] * 3
 
 
 def test_readme_table_shows_held_out_rows_where_they_exist(

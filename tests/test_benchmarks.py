@@ -311,10 +311,15 @@ def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_
         cells = report.side_by_side(ordered, "CartPole-v1", ["dqn-zoo"])
         assert cells is not None and {r["eval_every"] for r in cells[0].runs} == {256}
         assert cells[0].n == 10 and cells[0].steps_quantile(50) == (12_160.0, False)
-    # LunarLander-v3's first held-out command stopped part-way: only the seeds every algo ran are compared.
+    # LunarLander-v3's held-out seeds 5-7 as its first command left them, stopped part-way (QR-DQN's seed 7 not run):
+    # only the seeds every algo ran are compared.
     algos = ["nfq-short-rounds", "dqn-zoo", "qrdqn-zoo"]
-    records = [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["env"] == "LunarLander-v3"]
-    assert {r["seed"] for r in records if r["algo"] == algos[0]} > {r["seed"] for r in records if r["algo"] == algos[2]}
+    records = [
+        r
+        for r in run.read_results(RESULTS / "held_out.jsonl")
+        if r["env"] == "LunarLander-v3" and r["seed"] in (5, 6, 7) and (r["algo"], r["seed"]) != (algos[2], 7)
+    ]
+    assert {r["seed"] for r in records if r["algo"] in algos[:2]} == {5, 6, 7}
     cells = report.side_by_side(records, "LunarLander-v3", algos)
     assert cells is not None and [[r["seed"] for r in cell.runs] for cell in cells] == [[5, 6]] * 3
 

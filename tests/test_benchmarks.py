@@ -305,7 +305,8 @@ def test_a_median_between_a_solved_and_an_unsolved_run_is_a_lower_bound_in_steps
 def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_seeds_every_algo_ran() -> None:
     # dqn-zoo's held-out CartPole-v1 runs: seeds 5-14 by a command evaluating every 256 steps and by one evaluating
     # every 1,024 (in either order in the file, the finer grid's runs are the ones compared; the two never mix).
-    records = [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["env"] == "CartPole-v1"]
+    every_run = run.read_results(RESULTS / "held_out.jsonl")
+    records = [r for r in every_run if r["env"] == "CartPole-v1"]
     assert {r["eval_every"] for r in records if r["algo"] == "dqn-zoo"} >= {256, 1024}
     for ordered in (records, records[::-1]):
         cells = report.side_by_side(ordered, "CartPole-v1", ["dqn-zoo"])
@@ -316,7 +317,7 @@ def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_
     algos = ["nfq-short-rounds", "dqn-zoo", "qrdqn-zoo"]
     records = [
         r
-        for r in run.read_results(RESULTS / "held_out.jsonl")
+        for r in every_run
         if r["env"] == "LunarLander-v3" and r["seed"] in (5, 6, 7) and (r["algo"], r["seed"]) != (algos[2], 7)
     ]
     assert {r["seed"] for r in records if r["algo"] in algos[:2]} == {5, 6, 7}

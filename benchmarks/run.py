@@ -148,6 +148,12 @@ class Job:
     command: str = ""
     git: str | None = None
 
+    def __post_init__(self) -> None:
+        if self.protocol not in PROTOCOLS:
+            raise ValueError(f"protocol must be one of {list(PROTOCOLS)}, got {self.protocol!r}")
+        if self.protocol == "book":  # the book's criterion stops at the solve
+            object.__setattr__(self, "stop_at_solve", True)
+
     @property
     def threshold(self) -> float:
         """:return: the env's solve threshold (mean greedy return)"""
@@ -184,10 +190,7 @@ def make_jobs(
     seeds: Sequence[int],
     budget: int | None = None,
     eval_every: int | None = None,
-    n_eval_episodes: int = configs.N_EVAL_EPISODES,
-    stop_at_solve: bool = False,
-    command: str = "",
-    protocol: str = "rounds",
+    **fields: Any,
 ) -> list[Job]:
     """
     :param algos: algorithm config names
@@ -195,27 +198,19 @@ def make_jobs(
     :param seeds: seeds
     :param budget: env-step budget for every job (default: each config's budget on each env)
     :param eval_every: evaluation period for every job (default: each env's)
-    :param n_eval_episodes: greedy episodes per evaluation
-    :param stop_at_solve: stop each job at its first solved evaluation
-    :param command: the command line, recorded with each result
-    :param protocol: ``"rounds"`` or ``"book"`` (then every job stops at its solve)
+    :param fields: the jobs' other :class:`Job` fields (default ``git``: this checkout's revision)
     :return: the jobs, seed-major: each seed's algorithms one after the other, so that every algorithm shares the
         cores with a like mix of jobs (algorithm-major, each would run mostly beside itself)
     """
-    if protocol not in PROTOCOLS:
-        raise ValueError(f"protocol must be one of {list(PROTOCOLS)}, got {protocol!r}")
-    git, resolved = git_revision(), [configs.resolve(algo, env_id) for env_id in envs for algo in algos]
+    resolved = [configs.resolve(algo, env_id) for env_id in envs for algo in algos]
+    fields = {"git": git_revision(), **fields}
     return [
         Job(
             config,
             seed,
             config.budget if budget is None else budget,
             configs.ENVS[config.env_id].eval_every if eval_every is None else eval_every,
-            n_eval_episodes,
-            stop_at_solve or protocol == "book",
-            protocol,
-            command,
-            git,
+            **fields,
         )
         for seed in seeds
         for config in resolved
@@ -595,8 +590,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     results = args.results or (DEFAULT_BOOK_RESULTS if args.protocol == "book" else DEFAULT_RESULTS)
     command = relative_command("benchmarks.run", argv)
     jobs = make_jobs(
-        args.algos, args.envs, parse_seeds(args.seeds), args.budget, args.eval_every, args.eval_episodes,
-        args.stop_at_solve, command, args.protocol,
+        args.algos, args.envs, parse_seeds(args.seeds), args.budget, args.eval_every,
+        n_eval_episodes=args.eval_episodes, stop_at_solve=args.stop_at_solve, command=command, protocol=args.protocol,
     )  # fmt: skip
     if args.dry_run:
         done = done_keys(results, jobs, args.rerun)

@@ -139,23 +139,14 @@ def test_configs_refuse_an_entry_that_normalizes_the_env(tmp_path: Path, monkeyp
 
 def test_recorded_runs_of_kept_configs_keep_their_job_keys() -> None:
     """The configs' move and the new runner keep the hashes, so the recorded runs still count as done."""
-    checked = 0
-    for name in ("runs.jsonl", "book_protocol.jsonl"):
-        for record in run.read_results(RESULTS / name):
-            if record["algo"] in configs.algorithm_names():
-                job = run.make_jobs(
-                    [record["algo"]],
-                    [record["env"]],
-                    [record["seed"]],
-                    record["budget"],
-                    record["eval_every"],
-                    record["n_eval_episodes"],
-                    record["stop_at_solve"],
-                    protocol=record.get("protocol", "rounds"),
-                )[0]
-                assert job.key == run.result_key(record)
-                checked += 1
-    assert checked > 300
+    records = [*run.read_results(RESULTS / "runs.jsonl"), *run.read_results(RESULTS / "book_protocol.jsonl")]
+    kept = [record for record in records if record["algo"] in configs.algorithm_names()]
+    for record in kept:
+        fields = {key: record[key] for key in ("budget", "eval_every", "n_eval_episodes", "stop_at_solve")}
+        fields["protocol"] = record.get("protocol", "rounds")
+        (job,) = run.make_jobs([record["algo"]], [record["env"]], [record["seed"]], **fields)
+        assert job.key == run.result_key(record)
+    assert len(kept) > 300
 
 
 def test_evaluation_episode_i_starts_from_reset_seed_base_plus_i() -> None:

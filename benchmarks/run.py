@@ -38,7 +38,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv
 
 from benchmarks import configs
-from sb3_nfq.callbacks import BookCriterion, StopTrainingOnBookCriterion
+from sb3_nfq.callbacks import StopTrainingOnBookCriterion
 from sb3_nfq.configs import zoo_to_kwargs
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -369,22 +369,6 @@ def train(job: Job, tracker: BaseCallback) -> tuple[Any, str | None]:
     return model, None
 
 
-def book_curve(criterion: BookCriterion, every: int) -> list[list[float]]:
-    """
-    :param criterion: the book protocol's evaluations of one job
-    :param every: keep the first evaluation at or after each multiple of this many env steps, and the last
-    :return: ``[steps, mean of the last BOOK_WINDOW evaluation returns]`` at those evaluations
-    """
-    curve: list[list[float]] = []
-    next_point = 0
-    for index, steps in enumerate(criterion.evaluation_steps):
-        if steps >= next_point or index == len(criterion.evaluation_steps) - 1:
-            window = criterion.evaluation_returns[max(0, index + 1 - criterion.window) : index + 1]
-            curve.append([steps, float(np.mean(window))])
-            next_point = (steps // every + 1) * every
-    return curve
-
-
 def run_job(job: Job) -> dict[str, Any]:
     """Train one job and evaluate it, with one torch thread. :return: its result record (one JSON line)"""
     wall_start = time.perf_counter()
@@ -420,7 +404,7 @@ def run_job(job: Job) -> dict[str, Any]:
             "train_seconds_to_solve": None,  # not measured under the book's criterion
             "stopped_at_solve": criterion.solved,
         }
-        eval_seconds, curve = criterion.eval_seconds, book_curve(criterion, job.eval_every)
+        eval_seconds, curve = criterion.eval_seconds, []  # its evaluations are single episodes: no curve
     return {
         "algo": config.algo,
         "env": config.env_id,

@@ -192,7 +192,7 @@ def test_a_job_evaluates_at_step_0_after_each_period_and_at_the_end(algo: str) -
 def test_the_book_protocol_evaluates_after_every_training_episode(algo: str) -> None:
     record = run.run_job(_job(algo, budget=600, protocol="book"))
     assert record["protocol"] == "book" and record["stop_at_solve"] and not record["solved"]
-    assert record["episodes_trained"] > 10 and record["curve"][-1][0] <= record["steps_trained"]
+    assert record["episodes_trained"] > 10 and record["curve"] == []
 
 
 def test_keep_best_configs_run_with_the_keep_best_callback() -> None:

@@ -17,7 +17,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks.report import markdown_table, publish
+import pandas as pd
+
+from benchmarks.report import publish
 from benchmarks.run import REPO_ROOT, script_result
 
 SCRIPTS = REPO_ROOT / "examples" / "coming_from_dqn"
@@ -63,7 +65,7 @@ def settings_table() -> str:
     dqn, nfq = script_settings("dqn_cartpole.py"), script_settings("nfq_cartpole.py")
     names = [*dqn, *(name for name in nfq if name not in dqn)]
     rows = [(f"`{name}`", _code(dqn.get(name)), _code(nfq.get(name))) for name in names]
-    return markdown_table(["setting", "`dqn_cartpole.py`", "`nfq_cartpole.py`"], rows)
+    return pd.DataFrame(rows, columns=["setting", "`dqn_cartpole.py`", "`nfq_cartpole.py`"]).to_markdown(index=False)
 
 
 def _code(value: str | None) -> str:
@@ -72,19 +74,17 @@ def _code(value: str | None) -> str:
 
 def table(results: Sequence[dict[str, Any]]) -> str:
     """:return: the markdown table of the runs"""
-    header = ["script", "env steps", "torch threads", "training seconds (with its evaluations)"]
-    header += ["greedy return, 100 episodes of the loaded model"]
     rows = [
-        (
-            f"`{r['script']}`",
-            f"{r['steps']:,}",
-            r["threads"],
-            f"{r['train_seconds']:.0f} s",
-            f"{r['mean']:.1f} +/- {r['std']:.1f}",
-        )
+        {
+            "script": f"`{r['script']}`",
+            "env steps": f"{r['steps']:,}",
+            "torch threads": r["threads"],
+            "training seconds (with its evaluations)": f"{r['train_seconds']:.0f} s",
+            "greedy return, 100 episodes of the loaded model": f"{r['mean']:.1f} +/- {r['std']:.1f}",
+        }
         for r in results
     ]
-    return markdown_table(header, rows)
+    return pd.DataFrame(rows).to_markdown(index=False)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

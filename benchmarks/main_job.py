@@ -18,7 +18,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks.report import markdown_table, publish, write_readme_block
+import pandas as pd
+
+from benchmarks.report import publish, write_readme_block
 from benchmarks.run import REPO_ROOT, script_result
 
 DEFAULT_OUT = REPO_ROOT / "benchmarks" / "results" / "main_job.json"
@@ -60,22 +62,20 @@ def run_main_job(busy: bool, folder: Path) -> tuple[dict[str, Any], list[str]]:
 
 def table(results: Sequence[dict[str, Any]]) -> str:
     """:return: the markdown table of the runs"""
-    header = ["machine", "torch threads", "solved at (env steps)", "rounds", "training + per-round evaluations"]
-    header += ["whole script", "greedy mean at the solve", "final: 100 new greedy episodes"]
     rows = [
-        (
-            "one busy process beside it" if r["busy_process_beside"] else "quiet",
-            r["threads"],
-            f"{r['steps']:,}" if r["solved"] else f"not solved in {r['steps']:,}",
-            r["rounds"],
-            f"{r['train_seconds']:.0f} s",
-            f"{r['wall_seconds']:.0f} s",
-            f"{r['best_eval_mean']:.1f}",
-            f"{r['final_eval_mean']:.1f}",
-        )
+        {
+            "machine": "one busy process beside it" if r["busy_process_beside"] else "quiet",
+            "torch threads": r["threads"],
+            "solved at (env steps)": f"{r['steps']:,}" if r["solved"] else f"not solved in {r['steps']:,}",
+            "rounds": r["rounds"],
+            "training + per-round evaluations": f"{r['train_seconds']:.0f} s",
+            "whole script": f"{r['wall_seconds']:.0f} s",
+            "greedy mean at the solve": f"{r['best_eval_mean']:.1f}",
+            "final: 100 new greedy episodes": f"{r['final_eval_mean']:.1f}",
+        }
         for r in results
     ]
-    return markdown_table(header, rows)
+    return pd.DataFrame(rows).to_markdown(index=False)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -14,7 +14,7 @@ import json
 import math
 import sys
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -565,13 +565,6 @@ def readme_table(
         row["steps to solve: median"] += f" (the book's printed mean over its 5 seeds: {BOOK_MEAN_STEPS:,})"
         rows.append(row)
     return pd.DataFrame(rows).to_markdown(index=False)
-
-
-def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
-    """:return: a plain markdown table of ``rows`` under ``header``, each cell as given (no padding)"""
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
-    return "\n".join(lines)
 
 
 def replace_block(text: str, markers: tuple[str, str], block: str) -> str:

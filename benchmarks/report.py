@@ -258,17 +258,6 @@ def steps_ratio(num: Cell, den: Cell, low: float, high: float, ci_below: float =
     return ("not met", text) if ratio_high < low or ratio_low > high or ci_high >= ci_below else ("unknown", text)
 
 
-def jobs_at_once(records: Sequence[dict[str, Any]]) -> float:
-    """:return: how many jobs ran at once with these (their pool's workers; 1 in-process; ``inf`` on Ray)"""
-
-    def at_once(launcher: str) -> float:
-        if launcher.startswith("ray ("):
-            return math.inf
-        return int(launcher.removeprefix("local pool (").split()[0]) if launcher.startswith("local pool (") else 1
-
-    return max(at_once(str(record.get("launcher", "in-process"))) for record in records)
-
-
 def side_by_side(records: Sequence[dict[str, Any]], env: str, algos: Sequence[str]) -> list[Cell] | None:
     """
     :return: a cell per algo of its runs on ``env`` trained to the budget by runner commands that ran all of ``algos``
@@ -290,11 +279,6 @@ def side_by_side(records: Sequence[dict[str, Any]], env: str, algos: Sequence[st
             pooled[algo] = runs[algo] | pooled[algo]
     seeds = sorted(set.intersection(*(set(runs) for runs in pooled.values())))
     return [Cell([pooled[a][s] for s in seeds]) for a in algos] if seeds else None
-
-
-def _ran(cells: Sequence[Cell]) -> str:
-    workers = jobs_at_once([run for cell in cells for run in cell.runs])
-    return "on a Ray cluster" if workers == math.inf else f"{workers:.0f} job{'s' if workers > 1 else ''} at a time"
 
 
 def read_targets(path: Path = TARGETS_FILE) -> dict[str, Any]:
@@ -359,7 +343,8 @@ def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any])
             rows.append((claims[1], "met" if met else "not met", text))
             seconds = [float(np.median(cell.column("train_seconds"))) for cell in cells]
             ratio = seconds[0] / seconds[1]
-            text = f"{ratio:.3f} ({seconds[0]:.1f} s / {seconds[1]:.1f} s, {_ran(cells)}); to the solve, median: "
+            launcher = _joined([run for cell in cells for run in cell.runs], "launcher")
+            text = f"{ratio:.3f} ({seconds[0]:.1f} s / {seconds[1]:.1f} s, {launcher}); to the solve, median: "
             text += " vs ".join(f"{cell.algo} {cell.solve_seconds()}" for cell in cells)
             rows.append((claims[2], "met" if ratio <= goal["seconds_ratio"] else "not met", text))
         claim = f"{env}: {configs.ONE_CONFIG} (one config) solves in ≥ {one['solved_at_least']}/{n_seeds} seeds, at "

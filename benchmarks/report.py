@@ -630,13 +630,8 @@ def build_report(
         "",
         "Code revision(s): " + ", ".join(f"`{rev}`" for rev in _unique(everything, "git")),
         "",
-        "Criterion, timing and record fields: `benchmarks/README.md`, section What is measured. Runs marked "
-        "(stopped at solve) ran with `--stop-at-solve`: their final score is taken at the solve. A run whose loss "
-        "became non-finite (`NFQDivergenceError`) counts as unsolved unless it had solved before. Unsolved runs count "
-        "as the steps they trained: a value marked ≥ is a lower bound. IQM 95% CIs: rliable "
-        f"`get_interval_estimates` ({BOOTSTRAP_REPS} bootstrap resamples over runs). Learning curves: mean over seeds "
-        "with a 95% bootstrap band, drawn while at least half of a row's runs are still training. Runs of retired "
-        "configs stay in the results files with their settings, out of this report.",
+        "How to read it (criterion, timing, bounds, confidence intervals, record fields): `benchmarks/README.md`, "
+        "section What is measured.",
         "",
         f"Seeds: every choice (tuning, the shipped config of each env) was made on tuning seeds (100 and up) or on the "
         f"development seeds {seeds} (`benchmarks.configs.SEEDS`), whose rows carry that selection. The targets are "

@@ -7,6 +7,7 @@ tiny budgets, no mocks.
 import json
 import re
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,29 +30,21 @@ def _job(algo: str, **kwargs: Any) -> run.Job:
     return run.make_jobs([algo], ["CartPole-v1"], [0], **{**defaults, **kwargs})[0]
 
 
-class PoleAngle:
-    """A fixed policy whose CartPole episodes last from about 25 to 70 steps, depending on the start state."""
+class Rule:
+    """A fixed CartPole policy: push right where ``push_right(obs)``; wait ``delay`` seconds at each ``predict``."""
 
-    def predict(self, obs: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True) -> Any:
-        return (obs[:, 2] > 0).astype(int), None
-
-
-class Balancer:
-    """A fixed policy that keeps CartPole's pole up to the time limit from most start states."""
-
-    def predict(self, obs: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True) -> Any:
-        return (obs[:, 2] + obs[:, 3] > 0).astype(int), None
-
-
-class Delayed:
-    """``policy``, waiting ``delay`` seconds at each ``predict``."""
-
-    def __init__(self, policy: Any, delay: float) -> None:
-        self.policy, self.delay = policy, delay
+    def __init__(self, push_right: Callable[[np.ndarray], np.ndarray], delay: float = 0.0) -> None:
+        self.push_right, self.delay = push_right, delay
 
     def predict(self, obs: np.ndarray, state: Any = None, episode_start: Any = None, deterministic: bool = True) -> Any:
         time.sleep(self.delay)
-        return self.policy.predict(obs)
+        return self.push_right(obs).astype(int), None
+
+
+#: Episodes of about 25 to 70 steps, depending on the start state.
+POLE_ANGLE = Rule(lambda obs: obs[:, 2] > 0)
+#: Keeps the pole up to the time limit from most start states.
+BALANCER = Rule(lambda obs: obs[:, 2] + obs[:, 3] > 0)
 
 
 def test_reference_truncation_bootstraps_and_termination_does_not() -> None:
@@ -156,21 +149,21 @@ def test_evaluation_episode_i_starts_from_reset_seed_base_plus_i() -> None:
         env, total, done = gym.make("CartPole-v1"), 0.0, False
         obs, _ = env.reset(seed=base + i)
         while not done:
-            obs, reward, terminated, truncated, _ = env.step(int(PoleAngle().predict(obs[None])[0][0]))
+            obs, reward, terminated, truncated, _ = env.step(int(POLE_ANGLE.predict(obs[None])[0][0]))
             total, done = total + float(reward), terminated or truncated
         expected.append(total)
     evaluations = run.Evaluations(_job("nfq-book", n_eval_episodes=20), seed_base=base)
     for _ in range(2):  # every evaluation replays the same episodes
-        returns = evaluations.returns(PoleAngle(), base)
+        returns = evaluations.returns(POLE_ANGLE, base)
         assert sorted(returns) == sorted(expected) and len(set(expected)) > 5
 
 
 def test_seconds_to_solve_count_training_before_the_solving_evaluation_and_no_evaluation() -> None:
     evaluations = run.Evaluations(_job("nfq-book"), seed_base=1_000_000)
     evaluations.started = time.perf_counter() - 10.0  # training began 10 s ago
-    evaluations.evaluate(0, Delayed(PoleAngle(), 0.02))  # a slow evaluation, then one that solves, then another
-    evaluations.evaluate(1024, Balancer())
-    evaluations.evaluate(2048, Balancer())
+    evaluations.evaluate(0, Rule(POLE_ANGLE.push_right, 0.02))  # a slow evaluation, then two that solve
+    evaluations.evaluate(1024, BALANCER)
+    evaluations.evaluate(2048, BALANCER)
     assert evaluations.curve[0][1] < 475 <= min(evaluations.curve[1][1], evaluations.curve[2][1])
     assert evaluations.steps_to_solve == 1024 and evaluations.eval_seconds > 0.5
     assert evaluations.seconds_to_solve is not None and 10.0 <= evaluations.seconds_to_solve < 10.4
@@ -204,7 +197,10 @@ def test_keep_best_configs_run_with_the_keep_best_callback() -> None:
     assert record["config"]["keep_best"] is True and record["curve"][-1][0] == record["steps_trained"]
 
 
-def test_runner_appends_resumes_and_lists_done_jobs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_runner_reads_seed_ranges_appends_resumes_and_lists_done_jobs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert run.parse_seeds(["0-2", "7", "5,1"]) == [0, 1, 2, 7, 5]
     argv = ["--algos", "reference-nfq", "--envs", "CartPole-v1", "--seeds", "0-1", "--budget", "1024"]
     argv += ["--eval-episodes", "2", "--workers", "0", "--results", str(tmp_path / "runs.jsonl")]
     assert run.main(argv) == 0
@@ -220,10 +216,6 @@ def test_recorded_commands_name_paths_inside_the_repository_relative_to_it(tmp_p
     assert command == f"python -m benchmarks.run --results benchmarks/results/runs.jsonl --x {tmp_path}"
 
 
-def test_parse_seeds_reads_ranges_and_lists() -> None:
-    assert run.parse_seeds(["0-2", "7", "5,1"]) == [0, 1, 2, 7, 5]
-
-
 @pytest.mark.slow
 def test_runner_local_pool_and_ray_run_each_job_in_its_own_process(tmp_path: Path) -> None:
     pytest.importorskip("ray")
@@ -232,10 +224,8 @@ def test_runner_local_pool_and_ray_run_each_job_in_its_own_process(tmp_path: Pat
         argv = ["--algos", "reference-nfq", "--envs", "CartPole-v1", "--seeds", "0-1", "--budget", "1024"]
         assert run.main([*argv, "--eval-episodes", "2", "--results", str(results), *extra]) == 0
         records = run.read_results(results)
-        assert len({record["pid"] for record in records}) == 2
-        assert records[0]["launcher"] == (
-            "ray (local)" if "--ray-address" in extra else "local pool (1 spawned workers)"
-        )
+        launcher = "ray (local)" if "--ray-address" in extra else "local pool (1 spawned workers)"
+        assert len({record["pid"] for record in records}) == 2 and records[0]["launcher"] == launcher
 
 
 @pytest.fixture(scope="module")

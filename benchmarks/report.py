@@ -3,9 +3,8 @@ Turn the runner's JSON lines into ``benchmarks/results/README.md`` (tables, targ
 
     python -m benchmarks.report [--results benchmarks/results/runs.jsonl] [--out-dir benchmarks/results]
 
-A run that never solved counts as the steps it trained: a statistic that reaches such a value is a lower bound (``≥``).
-Runs of retired configs, or of settings their name no longer holds, stay in the results files, out of the report.
-With the default results file, one results table also goes into the top-level README, between its markers.
+How to read them: benchmarks/README.md, What is measured. With the default results file, one results table also goes
+into the top-level README, between its markers.
 """
 
 import argparse
@@ -524,14 +523,11 @@ def comparison_row(cells: Sequence[Cell], seeds: str) -> dict[str, str]:
     }
 
 
-def readme_table(
-    records: Sequence[dict[str, Any]], book_records: Sequence[dict[str, Any]], held_out: Sequence[dict[str, Any]] = ()
-) -> str:
+def readme_table(held_out: Sequence[dict[str, Any]], book_records: Sequence[dict[str, Any]]) -> str:
     """
     :return: the top-level README's results table: per env, the shipped config against both peers on the held-out
-        seeds (selected alike; the row says how many have run, until all have; before any: against dqn-zoo on the
-        development seeds, which chose it), run side by side (:func:`side_by_side`), and the fidelity row (the book's
-        protocol), each with its command
+        seeds (selected alike; the row says how many have run, until all have), run side by side
+        (:func:`side_by_side`), and the fidelity row (the book's protocol), each with its command
     """
     rows = []
     for env in configs.ENVS:
@@ -541,8 +537,6 @@ def readme_table(
             have, n_seeds = min(cell.n for cell in cells), len(configs.HELD_OUT_SEEDS)
             so_far = f": {have} of {n_seeds} seeds so far" if have < n_seeds else ""
             rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (held out{so_far})"))
-        elif cells := side_by_side(records, env, [algo, peers_of(configs.ONE_CONFIG)[0]]):
-            rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (chose the config)"))
     cells_by_algo = book_cells(book_records)
     if all(algo in cells_by_algo for algo in BOOK_PAIR):
         row = comparison_row([cells_by_algo[algo] for algo in BOOK_PAIR], _seeds(cells_by_algo[BOOK_PAIR[0]].runs))
@@ -682,7 +676,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     shown = str(path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path)
     build_report(records, out_dir, shown, relative_command("benchmarks.report", argv), book_records, held_out)
     print(f"wrote {out_dir / 'README.md'}")
-    if path == DEFAULT_RESULTS and write_readme_block(README_MARKERS, readme_table(records, book_records, held_out)):
+    if path == DEFAULT_RESULTS and write_readme_block(README_MARKERS, readme_table(held_out, book_records)):
         print(f"wrote the results table into {README}")
     return 0
 

@@ -61,7 +61,7 @@ SHIPPED: dict[str, str] = {
     "CartPole-v1": "nfq-front-loaded-keep-best",
     "Acrobot-v1": "nfq-capped-10k",
     "MountainCar-v0": "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
-    "LunarLander-v3": "nfq-short-rounds",
+    "LunarLander-v3": "nfq-short-rounds-lr-lin-4e-3-huber-5",
     "default": "nfq-short-rounds-lr-lin-4e-3-huber-5",
 }
 #: The one config run unchanged on every env: the shipped file's entry for a new problem.

@@ -88,15 +88,15 @@ def dqn_budgets(results: Path, envs: Sequence[str]) -> dict[str, int]:
 
 
 def objective(
-    trial: optuna.Trial, budgets: dict[str, int], floors: dict[str, float], episodes: int, seed: int
+    trial: optuna.Trial, budgets: dict[str, int], floors: dict[str, float], episodes: int, seed: int, episodes_seed: int
 ) -> float:
     """
     :param trial: the trial, which samples its point
     :param budgets: env id -> env steps to train for
     :param floors: env id -> the mean return of random actions there
     :param episodes: greedy episodes per score
-    :param seed: the tuning seed (model, training env; the episodes start from ``reset(seed=FINAL_SEED_BASE + 1000 *
-        seed + i)``)
+    :param seed: the tuning seed (model, training env)
+    :param episodes_seed: the scoring episodes start from ``reset(seed=episodes_seed + i)``, as ``floors``' did
     :return: the trial's lowest scaled score over the envs (pruned after an env when the median pruner says so)
     """
     kwargs = sample_nfq_params(trial, 0, 1, {})
@@ -106,7 +106,7 @@ def objective(
         model = NFQ("MlpPolicy", make_env(env_id, 1, seed), seed=seed, device="cpu", **kwargs)
         try:
             model.learn(budget)
-            score = mean_return(model, env_id, episodes, FINAL_SEED_BASE + 1000 * seed)
+            score = mean_return(model, env_id, episodes, episodes_seed)
         except NFQDivergenceError:
             score = floors[env_id]
         trial.set_user_attr(env_id, {"budget": budget, "mean_return": score})
@@ -147,7 +147,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         load_if_exists=True,
     )
     study.set_user_attr(f"seed {args.seed}", {"budgets": budgets, "random_actions": floors})
-    study.optimize(lambda trial: objective(trial, budgets, floors, args.eval_episodes, args.seed), args.n_trials)
+    study.optimize(
+        lambda trial: objective(trial, budgets, floors, args.eval_episodes, args.seed, episodes_seed), args.n_trials
+    )
     print(f"budgets {budgets}; random actions {floors}")
     print(study.trials_dataframe(attrs=("number", "value", "state", "params")).to_string())
     return 0

@@ -52,7 +52,6 @@ NFQ_CONFIG_NAMES = (
     "nfq-front-loaded-keep-best",
     "nfq-front-loaded-batch-128-keep-best",
     "nfq-capped-10k",
-    "nfq-short-rounds",
     "nfq-short-rounds-lr-lin-4e-3-huber-5",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-every-256",

@@ -58,7 +58,7 @@ NFQ_CONFIG_NAMES = (
 )
 #: The benchmark config each entry of the shipped sb3_nfq/hyperparams/nfq.yml was measured as.
 SHIPPED: dict[str, str] = {
-    "CartPole-v1": "nfq-front-loaded-keep-best",
+    "CartPole-v1": "nfq-front-loaded-batch-128-keep-best",
     "Acrobot-v1": "nfq-capped-10k",
     "MountainCar-v0": "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
     "LunarLander-v3": "nfq-short-rounds-lr-lin-4e-3-huber-5",

@@ -38,8 +38,9 @@ def test_the_file_has_an_entry_per_benchmark_env_the_default_and_atari() -> None
 
 def test_the_entries_are_the_configs_measured_for_them() -> None:
     cartpole, mountain_car, default = (read_entry(env_id) for env_id in ("CartPole-v1", "MountainCar-v0", "default"))
-    # CartPole: nfq-front-loaded-keep-best, its keep_best now the callback
+    # CartPole: nfq-front-loaded-batch-128-keep-best, its keep_best now the callback
     assert (cartpole["round_fraction"], cartpole["round_fraction_offset"], cartpole["train_freq"]) == (0.4, 4000, 128)
+    assert cartpole["batch_size"] == 128
     assert cartpole["callback"] == "sb3_nfq.KeepBestCallback" and "keep_best" not in cartpole
     # default: nfq-short-rounds-lr-lin-4e-3-huber-5, and MountainCar's config with one-step random actions
     assert (default["loss"], default["huber_delta"], default["learning_rate"]) == ("huber", 5.0, "lin_0.004")

@@ -41,10 +41,10 @@ def make_model(env: VecEnv, seed: int) -> NFQ:
         train_freq=128,
         round_fraction=0.4,
         round_fraction_offset=4000,
-        # Each round: 8 fitted iterations, each an epoch of 64-transition mini-batches over the whole memory,
+        # Each round: 8 fitted iterations, each an epoch of 128-transition mini-batches over the whole memory,
         # against TD targets computed once per iteration (NFQ's stand-in for DQN's target network)
         gradient_steps=8,
-        batch_size=64,
+        batch_size=128,
         target_mode="fixed_per_iteration",
         gamma=0.99,
         max_grad_norm=10.0,

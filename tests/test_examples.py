@@ -157,5 +157,5 @@ def test_coming_from_dqn_settings_table_puts_the_two_scripts_side_by_side() -> N
     rows = {cells[0].strip("`"): cells[1:] for cells in map(_cells, dqn_swap.settings_table().splitlines()[2:])}
     assert rows["learning_starts"] == ["`1000`", "-"]  # DQN only
     assert rows["memory"] == ["-", "`'growing'`"]  # NFQ only
-    assert rows["batch_size"] == ["`64`", "`64`"]
+    assert rows["batch_size"] == ["`64`", "`128`"]  # both, each its own
     assert "KeepBestCallback" in rows["learn(callback=...)"][1]

@@ -526,24 +526,26 @@ def comparison_row(cells: Sequence[Cell], seeds: str) -> dict[str, str]:
 def readme_table(held_out: Sequence[dict[str, Any]], book_records: Sequence[dict[str, Any]]) -> str:
     """
     :return: the top-level README's results table: per env, the shipped config against both peers on the held-out
-        seeds (selected alike; the row says how many have run, until all have), run side by side
-        (:func:`side_by_side`), and the fidelity row (the book's protocol), each with its command
+        seeds (selected alike; the row says how many have run, until all have, and names the configs when none has),
+        run side by side (:func:`side_by_side`), and the fidelity row (the book's protocol), each with its command
     """
-    rows = []
+    rows: list[dict[str, str]] = []
     for env in configs.ENVS:
-        algo = configs.SHIPPED[env]
-        cells = side_by_side(held_out, env, [algo, *peers_of(algo)])
+        algos = [configs.SHIPPED[env], *peers_of(configs.SHIPPED[env])]
+        cells = side_by_side(held_out, env, algos)
         if cells:
             have, n_seeds = min(cell.n for cell in cells), len(configs.HELD_OUT_SEEDS)
             so_far = f": {have} of {n_seeds} seeds so far" if have < n_seeds else ""
             rows.append(comparison_row(cells, f"{_seeds(cells[0].runs)} (held out{so_far})"))
+        else:
+            rows.append({"env": env, "seeds": "held out: none run yet", "NFQ config vs peers": " vs ".join(algos)})
     cells_by_algo = book_cells(book_records)
     if all(algo in cells_by_algo for algo in BOOK_PAIR):
         row = comparison_row([cells_by_algo[algo] for algo in BOOK_PAIR], _seeds(cells_by_algo[BOOK_PAIR[0]].runs))
         row["env"] = "CartPole-v1, the book's criterion"
         row["steps to solve: median"] += f" (the book's printed mean over its 5 seeds: {BOOK_MEAN_STEPS:,})"
         rows.append(row)
-    return pd.DataFrame(rows).to_markdown(index=False)
+    return pd.DataFrame(rows).fillna("—").to_markdown(index=False)
 
 
 def replace_block(text: str, markers: tuple[str, str], block: str) -> str:

@@ -303,16 +303,19 @@ def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_
 
 def test_readme_table_shows_the_held_out_rows_and_how_many_seeds_have_run(held_out: list[dict[str, Any]]) -> None:
     book = run.read_results(RESULTS / "book_protocol.jsonl")
-    rows = [row for row in report.readme_table(held_out, book).splitlines() if row.startswith(("| Acro", "| Cart"))]
-    assert "5-14 (held out)" in rows[0] and "14,336 vs 17,408 vs 19,456" in rows[0]
-    assert "10/10 vs 9/10 vs 10/10" in rows[0]
-    assert "330,964 vs 320,831" in rows[1] and "--protocol book" in rows[1]
+    rows = {row.split("|")[1].strip(): row for row in report.readme_table(held_out, book).splitlines()[2:]}
+    acrobot, book_row = rows["Acrobot-v1"], rows["CartPole-v1, the book's criterion"]
+    assert "5-14 (held out)" in acrobot and "14,336 vs 17,408 vs 19,456" in acrobot
+    assert "10/10 vs 9/10 vs 10/10" in acrobot
+    assert "330,964 vs 320,831" in book_row and "--protocol book" in book_row
     first_half = [r for r in run.read_results(RESULTS / "held_out.jsonl") if "--seeds 5-9 " in r["command"]]
     table = report.readme_table(first_half, book)
     (mountain_car,) = [row for row in table.splitlines() if row.startswith("| MountainCar")]
     assert "5-9 (held out: 5 of 10 seeds so far)" in mountain_car and "5/5 vs 0/5 vs 3/5" in mountain_car
+    (cartpole,) = [row for row in table.splitlines() if row.startswith("| CartPole-v1 ")]  # its entry ran 5-14 at once
+    assert "held out: none run yet" in cartpole and f"{configs.SHIPPED['CartPole-v1']} vs dqn-zoo-keep-best" in cartpole
     readme = report.replace_block(
-        f"a\n{report.README_MARKERS[0]}\nSTALE\n{report.README_MARKERS[1]}\nb", report.README_MARKERS, rows[0]
+        f"a\n{report.README_MARKERS[0]}\nSTALE\n{report.README_MARKERS[1]}\nb", report.README_MARKERS, acrobot
     )
     assert "STALE" not in readme and readme.startswith("a\n") and readme.endswith(report.README_MARKERS[1] + "\nb")
 

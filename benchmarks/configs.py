@@ -50,6 +50,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-book",
     "nfq-front-loaded",
     "nfq-front-loaded-keep-best",
+    "nfq-front-loaded-batch-128",
     "nfq-front-loaded-batch-128-keep-best",
     "nfq-capped-10k",
     "nfq-short-rounds-lr-lin-4e-3-huber-5",

@@ -48,10 +48,7 @@ HELD_OUT_SEEDS = tuple(range(5, 15))
 #: The NFQ configs still measured (benchmarks/hyperparams/<name>.yml), in report order.
 NFQ_CONFIG_NAMES = (
     "nfq-book",
-    "nfq-front-loaded",
-    "nfq-front-loaded-keep-best",
     "nfq-front-loaded-batch-128",
-    "nfq-front-loaded-batch-128-keep-best",
     "nfq-capped-10k",
     "nfq-short-rounds-lr-lin-4e-3-huber-5",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
@@ -100,8 +97,11 @@ class ResolvedConfig:
 
 def algorithm_names() -> list[str]:
     """:return: every algorithm config the runner knows, in report order"""
-    peers = [name + suffix for name in ZOO_PEERS for suffix in ("", KEEP_BEST_SUFFIX)]
-    return [*NFQ_CONFIG_NAMES, REFERENCE, *peers]
+    nfq, peers = (
+        [name + suffix for name in names for suffix in ("", KEEP_BEST_SUFFIX)]
+        for names in (NFQ_CONFIG_NAMES, ZOO_PEERS)
+    )
+    return [*nfq, REFERENCE, *peers]
 
 
 def zoo_file(name: str) -> Path:
@@ -120,22 +120,22 @@ def resolve(algo: str, env_id: str) -> ResolvedConfig:
     """
     if env_id not in ENVS:
         raise KeyError(f"unknown env {env_id!r}; known: {sorted(ENVS)}")
-    base = algo.removesuffix(KEEP_BEST_SUFFIX) if algo.removesuffix(KEEP_BEST_SUFFIX) in ZOO_PEERS else algo
+    base = algo.removesuffix(KEEP_BEST_SUFFIX)
     kind: AlgoKind
-    if algo in NFQ_CONFIG_NAMES:
-        kind, source = "nfq", f"benchmarks/hyperparams/{algo}.yml"
-        kwargs = read_entry(env_id, HYPERPARAMS_DIR / f"{algo}.yml")
+    if base in NFQ_CONFIG_NAMES:
+        kind, source = "nfq", f"benchmarks/hyperparams/{base}.yml"
+        kwargs = read_entry(env_id, HYPERPARAMS_DIR / f"{base}.yml")
     elif algo == REFERENCE:
         kind, source = "reference", "benchmarks/reference_nfq.py"
         kwargs = {"n_timesteps": read_entry(env_id, HYPERPARAMS_DIR / "nfq-book.yml")["n_timesteps"]}
     elif base in ZOO_PEERS:
         kind, file_name = ZOO_PEERS[base]
         kwargs = read_entry(env_id, zoo_file(file_name))
-        if algo != base:
-            kwargs["keep_best"] = True
         source = f"rl_zoo3 {importlib.metadata.version('rl_zoo3')} hyperparams/{file_name}"
     else:
         raise KeyError(f"unknown algorithm config {algo!r}; known: {algorithm_names()}")
+    if algo != base:
+        kwargs["keep_best"] = True
     if present := [key for key in NOT_APPLIED if key in kwargs]:
         raise NotImplementedError(f"{source}'s entry for {env_id} sets {present}, which the runner does not apply")
     budget = int(float(kwargs.pop("n_timesteps")))

@@ -100,7 +100,13 @@ def test_configs_resolve_every_algorithm_on_every_env_and_refuse_unknown_names()
             assert config.kwargs.get("keep_best", False) == (algo.endswith("-keep-best"))
     assert configs.resolve("reference-nfq", "CartPole-v1").budget == configs.resolve("nfq-book", "CartPole-v1").budget
     assert "n_quantiles" in configs.resolve("qrdqn-zoo", "Acrobot-v1").kwargs["policy_kwargs"]
-    assert set(configs.SHIPPED.values()) <= set(configs.NFQ_CONFIG_NAMES)
+    assert {algo.removesuffix(configs.KEEP_BEST_SUFFIX) for algo in configs.SHIPPED.values()} <= set(
+        configs.NFQ_CONFIG_NAMES
+    )
+    batch_128 = configs.resolve("nfq-front-loaded-batch-128", "CartPole-v1").kwargs
+    assert configs.resolve("nfq-front-loaded-batch-128-keep-best", "CartPole-v1").kwargs == batch_128 | {
+        "keep_best": True
+    }
     assert not set(configs.SEEDS) & set(configs.HELD_OUT_SEEDS)
     with pytest.raises(KeyError, match="unknown algorithm config 'nfq-tuned'"):
         configs.resolve("nfq-tuned", "CartPole-v1")
@@ -186,11 +192,11 @@ def test_the_book_protocol_evaluates_after_every_training_episode(algo: str) -> 
 
 
 def test_keep_best_configs_run_with_the_keep_best_callback() -> None:
-    for algo in ("dqn-zoo-keep-best", "nfq-front-loaded-keep-best"):
+    for algo in ("dqn-zoo-keep-best", "nfq-front-loaded-batch-128-keep-best"):
         _, callbacks = run.build_sb3_model(_job(algo))
         assert [type(callback) for callback in callbacks] == [sb3_nfq.KeepBestCallback]
     assert run.build_sb3_model(_job("dqn-zoo"))[1] == []
-    record = run.run_job(_job("nfq-front-loaded-keep-best", budget=1500))
+    record = run.run_job(_job("nfq-front-loaded-batch-128-keep-best", budget=1500))
     assert record["config"]["keep_best"] is True and record["curve"][-1][0] == record["steps_trained"]
 
 
@@ -227,8 +233,8 @@ def test_runner_local_pool_and_ray_run_each_job_in_its_own_process(tmp_path: Pat
 
 @pytest.fixture(scope="module")
 def recorded() -> list[dict[str, Any]]:
-    """The recorded CartPole runs of the fidelity pair, a shipped config and DQN, and of a retired config."""
-    algos = {"nfq-book", "reference-nfq", "nfq-front-loaded-keep-best", "dqn-zoo", "nfq-tuned"}
+    """The recorded CartPole runs of the fidelity pair and DQN, and of a retired config."""
+    algos = {"nfq-book", "reference-nfq", "dqn-zoo", "nfq-tuned"}
     return [r for r in run.read_results(RESULTS / "runs.jsonl") if r["env"] == "CartPole-v1" and r["algo"] in algos]
 
 

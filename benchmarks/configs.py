@@ -107,6 +107,21 @@ def algorithm_names() -> list[str]:
     return [*nfq, REFERENCE, *peers]
 
 
+def peers_of(algo: str) -> list[str]:
+    """:return: the peers an NFQ config is compared with, selected alike (a ``-keep-best`` config: their -keep-best)"""
+    suffix = KEEP_BEST_SUFFIX if algo.endswith(KEEP_BEST_SUFFIX) else ""
+    return [peer + suffix for peer in ZOO_PEERS]
+
+
+def measured_names() -> list[str]:
+    """
+    :return: what the runner runs by default: every config without selection, and each shipped config that ends on its
+        best fit with its peers selected alike (:func:`algorithm_names` also has every other config's -keep-best twin)
+    """
+    alike = {name for algo in SHIPPED.values() if algo.endswith(KEEP_BEST_SUFFIX) for name in (algo, *peers_of(algo))}
+    return [name for name in algorithm_names() if not name.endswith(KEEP_BEST_SUFFIX) or name in alike]
+
+
 def zoo_file(name: str) -> Path:
     """:return: the installed rl_zoo3 package's ``hyperparams/<name>`` (found without importing rl_zoo3)"""
     spec = importlib.util.find_spec("rl_zoo3")

@@ -296,12 +296,6 @@ def read_targets(path: Path = TARGETS_FILE) -> dict[str, Any]:
     return dict(targets)
 
 
-def peers_of(algo: str) -> list[str]:
-    """:return: the peers an NFQ config is compared with, selected alike (a ``-keep-best`` config: their -keep-best)"""
-    suffix = configs.KEEP_BEST_SUFFIX if algo.endswith(configs.KEEP_BEST_SUFFIX) else ""
-    return [peer + suffix for peer in configs.ZOO_PEERS]
-
-
 def _missing(cells: Sequence[Cell] | None) -> str | None:
     """:return: how many held-out seeds ran side by side, if fewer than all of them; ``None`` if all did"""
     have = min(cell.n for cell in cells) if cells else 0
@@ -317,10 +311,10 @@ def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any])
     """
     goal, one = targets["held_out"], targets["one_config"]
     n_seeds, rows = len(configs.HELD_OUT_SEEDS), []
-    dqn = peers_of(configs.ONE_CONFIG)[0]
+    dqn = configs.peers_of(configs.ONE_CONFIG)[0]
     for env in configs.ENVS:
         algo = configs.SHIPPED[env]
-        peers = peers_of(algo)
+        peers = configs.peers_of(algo)
         cells = side_by_side(records, env, [algo, *peers])
         claims = [
             f"{env}: {algo}'s median steps to solve ≤ {goal['steps_ratio']:g}x the better peer's "
@@ -531,7 +525,7 @@ def readme_table(held_out: Sequence[dict[str, Any]], book_records: Sequence[dict
     """
     rows: list[dict[str, str]] = []
     for env in configs.ENVS:
-        algos = [configs.SHIPPED[env], *peers_of(configs.SHIPPED[env])]
+        algos = [configs.SHIPPED[env], *configs.peers_of(configs.SHIPPED[env])]
         cells = side_by_side(held_out, env, algos)
         if cells:
             have, n_seeds = min(cell.n for cell in cells), len(configs.HELD_OUT_SEEDS)

@@ -555,7 +555,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     names, seeds = configs.algorithm_names(), f"{configs.SEEDS[0]}-{configs.SEEDS[-1]}"
-    parser.add_argument("--algos", nargs="+", default=names, choices=names)
+    parser.add_argument("--algos", nargs="+", default=configs.measured_names(), choices=names)
     parser.add_argument("--envs", nargs="+", default=list(configs.ENVS), choices=list(configs.ENVS))
     parser.add_argument("--seeds", nargs="+", default=[seeds], help=f"seeds or ranges (default {seeds})")
     parser.add_argument("--budget", type=int, help="env-step budget of every job (default: per config and env)")

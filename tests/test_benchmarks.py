@@ -108,6 +108,10 @@ def test_configs_resolve_every_algorithm_on_every_env_and_refuse_unknown_names()
         "keep_best": True
     }
     assert not set(configs.SEEDS) & set(configs.HELD_OUT_SEEDS)
+    # by default the runner runs every config without selection, and selected alike where a shipped entry is
+    measured = configs.measured_names()
+    assert {"nfq-front-loaded-batch-128-keep-best", "dqn-zoo-keep-best", "qrdqn-zoo-keep-best"} <= set(measured)
+    assert "nfq-capped-10k-keep-best" not in measured and set(measured) < set(configs.algorithm_names())
     with pytest.raises(KeyError, match="unknown algorithm config 'nfq-tuned'"):
         configs.resolve("nfq-tuned", "CartPole-v1")
 
@@ -262,7 +266,7 @@ def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_se
     assert "nfq-capped-10k 10/10 vs dqn-zoo 9/10 vs qrdqn-zoo 10/10" in text
     assert "0.871 (447.6 s / 513.9 s, local pool (2 spawned workers)); to the solve, median: nfq-capped" in text
     # an entry that ends on its best fit is compared with peers that do too
-    assert report.peers_of(configs.SHIPPED["CartPole-v1"]) == ["dqn-zoo-keep-best", "qrdqn-zoo-keep-best"]
+    assert configs.peers_of(configs.SHIPPED["CartPole-v1"]) == ["dqn-zoo-keep-best", "qrdqn-zoo-keep-best"]
     assert sum(verdict.strip() == "**not enough data**" for verdict, _ in targets.values()) == 13  # the other envs
     assert "p = 0.534, no difference shown" in text
     assert (tmp_path / "curves_CartPole-v1.png").stat().st_size > 0

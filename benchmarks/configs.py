@@ -50,7 +50,6 @@ NFQ_CONFIG_NAMES = (
     "nfq-book",
     "nfq-front-loaded-batch-128",
     "nfq-capped-10k",
-    "nfq-capped-10k-every-2048",
     "nfq-short-rounds-lr-lin-4e-3-huber-5",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-every-256",

@@ -84,7 +84,8 @@ HUBER_DELTAS = (1.0, 5.0, 10.0)
 #: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * M / train_freq``
 #: with ``M`` the memory (one round; or ``buffer_size``, which a growing memory fills). It sets a round's epochs over
 #: the memory, rounded and at least 1, so a trial's compute per env step (the book's: 40; the benchmark's
-#: growing-memory configs: 156 to 195) is its ``fit_cost`` unless ``M / train_freq`` is larger: then it is that.
+#: growing-memory configs: 156 to 195) is its ``fit_cost`` rounded to a whole multiple of ``M / train_freq``, and at
+#: least ``M / train_freq``.
 FIT_COST = (5.0, 250.0)
 
 

@@ -49,7 +49,6 @@ HELD_OUT_SEEDS = tuple(range(5, 15))
 NFQ_CONFIG_NAMES = (
     "nfq-book",
     "nfq-front-loaded-batch-128",
-    "nfq-capped-10k",
     "nfq-short-rounds-lr-lin-4e-3-huber-5",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-every-256",
@@ -57,7 +56,7 @@ NFQ_CONFIG_NAMES = (
 #: The benchmark config each entry of the shipped sb3_nfq/hyperparams/nfq.yml was measured as.
 SHIPPED: dict[str, str] = {
     "CartPole-v1": "nfq-front-loaded-batch-128-keep-best",
-    "Acrobot-v1": "nfq-capped-10k",
+    "Acrobot-v1": "nfq-front-loaded-batch-128-keep-best",
     "MountainCar-v0": "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
     "LunarLander-v3": "nfq-short-rounds-lr-lin-4e-3-huber-5",
     "default": "nfq-short-rounds-lr-lin-4e-3-huber-5",

@@ -111,7 +111,7 @@ def test_configs_resolve_every_algorithm_on_every_env_and_refuse_unknown_names()
     # by default the runner runs every config without selection, and selected alike where a shipped entry is
     measured = configs.measured_names()
     assert {"nfq-front-loaded-batch-128-keep-best", "dqn-zoo-keep-best", "qrdqn-zoo-keep-best"} <= set(measured)
-    assert "nfq-capped-10k-keep-best" not in measured and set(measured) < set(configs.algorithm_names())
+    assert "nfq-book-keep-best" not in measured and set(measured) < set(configs.algorithm_names())
     with pytest.raises(KeyError, match="unknown algorithm config 'nfq-tuned'"):
         configs.resolve("nfq-tuned", "CartPole-v1")
 
@@ -244,9 +244,10 @@ def recorded() -> list[dict[str, Any]]:
 
 @pytest.fixture(scope="module")
 def held_out() -> list[dict[str, Any]]:
-    """The recorded held-out Acrobot runs of its shipped config and the two peers."""
-    algos = {"nfq-capped-10k", "dqn-zoo", "qrdqn-zoo"}
-    return [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["env"] == "Acrobot-v1" and r["algo"] in algos]
+    """The recorded held-out MountainCar runs of its shipped config and the two peers."""
+    algos = {configs.SHIPPED["MountainCar-v0"], "dqn-zoo", "qrdqn-zoo"}
+    records = run.read_results(RESULTS / "held_out.jsonl")
+    return [r for r in records if r["env"] == "MountainCar-v0" and r["algo"] in algos]
 
 
 def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_seeds(
@@ -260,11 +261,11 @@ def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_se
     assert "1.13 (117,248 / 103,936; 95% bootstrap CI of the ratio 0.90-1.81)" in targets[fidelity][1]
     assert re.search(r"117,248 \[89,856, 146,176\] *\| 118,374 \[94,205, 138,240\]", text)  # as before the rewrite
     steps = [(target, cells) for target, cells in targets.items() if "0.75x the better peer" in target]
-    (acrobot,) = [cells for target, cells in steps if target.startswith("Acrobot-v1")]
-    assert acrobot[0].strip() == "**not met**"
-    assert "0.82 (14,336 / 17,408; 95% bootstrap CI of the ratio 0.60-1.50) against dqn-zoo" in acrobot[1]
-    assert "nfq-capped-10k 10/10 vs dqn-zoo 9/10 vs qrdqn-zoo 10/10" in text
-    assert "0.871 (447.6 s / 513.9 s, local pool (2 spawned workers)); to the solve, median: nfq-capped" in text
+    (mountain_car,) = [cells for target, cells in steps if target.startswith("MountainCar-v0")]
+    assert mountain_car[0].strip() == "**met**"
+    assert "0.44 (40,448 / 92,160; 95% bootstrap CI of the ratio 0.29-0.55) against dqn-zoo" in mountain_car[1]
+    assert "huber-5-ez-2 8/10 vs dqn-zoo 3/10 vs qrdqn-zoo 6/10" in text
+    assert "1.408 (451.0 s / 320.2 s, local pool (2 spawned workers)); to the solve, median: nfq-short" in text
     # an entry that ends on its best fit is compared with peers that do too
     assert configs.peers_of(configs.SHIPPED["CartPole-v1"]) == ["dqn-zoo-keep-best", "qrdqn-zoo-keep-best"]
     assert sum(verdict.strip() == "**not enough data**" for verdict, _ in targets.values()) == 13  # the other envs
@@ -314,9 +315,9 @@ def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_
 def test_readme_table_shows_the_held_out_rows_and_how_many_seeds_have_run(held_out: list[dict[str, Any]]) -> None:
     book = run.read_results(RESULTS / "book_protocol.jsonl")
     rows = {row.split("|")[1].strip(): row for row in report.readme_table(held_out, book).splitlines()[2:]}
-    acrobot, book_row = rows["Acrobot-v1"], rows["CartPole-v1, the book's criterion"]
-    assert "5-14 (held out)" in acrobot and "14,336 vs 17,408 vs 19,456" in acrobot
-    assert "10/10 vs 9/10 vs 10/10" in acrobot
+    mountain_car, book_row = rows["MountainCar-v0"], rows["CartPole-v1, the book's criterion"]
+    assert "5-14 (held out)" in mountain_car and "40,448 vs 92,160 vs 99,328" in mountain_car
+    assert "8/10 vs 3/10 vs 6/10" in mountain_car
     assert "330,964 vs 320,831" in book_row and "--protocol book" in book_row
     first_half = [r for r in run.read_results(RESULTS / "held_out.jsonl") if "--seeds 5-9 " in r["command"]]
     table = report.readme_table(first_half, book)
@@ -325,7 +326,7 @@ def test_readme_table_shows_the_held_out_rows_and_how_many_seeds_have_run(held_o
     (cartpole,) = [row for row in table.splitlines() if row.startswith("| CartPole-v1 ")]  # its entry ran 5-14 at once
     assert "held out: none run yet" in cartpole and f"{configs.SHIPPED['CartPole-v1']} vs dqn-zoo-keep-best" in cartpole
     readme = report.replace_block(
-        f"a\n{report.README_MARKERS[0]}\nSTALE\n{report.README_MARKERS[1]}\nb", report.README_MARKERS, acrobot
+        f"a\n{report.README_MARKERS[0]}\nSTALE\n{report.README_MARKERS[1]}\nb", report.README_MARKERS, mountain_car
     )
     assert "STALE" not in readme and readme.startswith("a\n") and readme.endswith(report.README_MARKERS[1] + "\nb")
 

@@ -315,9 +315,9 @@ def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_
 def test_readme_table_shows_the_held_out_rows_and_how_many_seeds_have_run(held_out: list[dict[str, Any]]) -> None:
     book = run.read_results(RESULTS / "book_protocol.jsonl")
     rows = {row.split("|")[1].strip(): row for row in report.readme_table(held_out, book).splitlines()[2:]}
-    mountain_car, book_row = rows["MountainCar-v0"], rows["CartPole-v1, the book's criterion"]
-    assert "5-14 (held out)" in mountain_car and "40,448 vs 92,160 vs 99,328" in mountain_car
-    assert "8/10 vs 3/10 vs 6/10" in mountain_car
+    all_seeds, book_row = rows["MountainCar-v0"], rows["CartPole-v1, the book's criterion"]
+    assert "5-14 (held out)" in all_seeds and "40,448 vs 92,160 vs 99,328" in all_seeds
+    assert "8/10 vs 3/10 vs 6/10" in all_seeds
     assert "330,964 vs 320,831" in book_row and "--protocol book" in book_row
     first_half = [r for r in run.read_results(RESULTS / "held_out.jsonl") if "--seeds 5-9 " in r["command"]]
     table = report.readme_table(first_half, book)
@@ -326,7 +326,7 @@ def test_readme_table_shows_the_held_out_rows_and_how_many_seeds_have_run(held_o
     (cartpole,) = [row for row in table.splitlines() if row.startswith("| CartPole-v1 ")]  # its entry ran 5-14 at once
     assert "held out: none run yet" in cartpole and f"{configs.SHIPPED['CartPole-v1']} vs dqn-zoo-keep-best" in cartpole
     readme = report.replace_block(
-        f"a\n{report.README_MARKERS[0]}\nSTALE\n{report.README_MARKERS[1]}\nb", report.README_MARKERS, mountain_car
+        f"a\n{report.README_MARKERS[0]}\nSTALE\n{report.README_MARKERS[1]}\nb", report.README_MARKERS, all_seeds
     )
     assert "STALE" not in readme and readme.startswith("a\n") and readme.endswith(report.README_MARKERS[1] + "\nb")
 

@@ -8,6 +8,7 @@ in it; :class:`StopTrainingOnBookCriterion` drives it from any SB3 algorithm's `
 ends ``learn()`` with the policy's best-scoring weights, scored by the training episodes' returns.
 """
 
+import collections
 import copy
 import time
 from collections.abc import Callable
@@ -175,11 +176,16 @@ class KeepBestCallback(BaseCallback):
     End ``learn()`` with the best-scoring weights of the run instead of the last ones, at no extra env steps, for an
     SB3 off-policy algorithm (NFQ, DQN, QR-DQN, ...). The policy's weights change in ``train()``, between rollouts,
     not while a rollout is collected: at the end of each rollout, the weights that collected it are scored by the
-    mean return of the training episodes that ended during it (the ``Monitor``'s returns, so exploratory ones), and
-    a score at least the best so far keeps a copy of the policy's weights (``policy.state_dict()``: DQN's target
-    network included) aside. Weights under which no episode ended are not scored. At the end of ``learn()`` the best
-    weights are loaded back into the policy, so the model ends with them (and ``model.save`` then saves them).
-    Training itself is unchanged: each fit starts from the weights the previous one left.
+    mean return of the training episodes that ended during it (the ``Monitor``'s returns, so exploratory ones), or,
+    when fewer than ``n_episodes`` did, of the last ``n_episodes`` training episodes; a score at least the best so
+    far keeps a copy of the policy's weights (``policy.state_dict()``: DQN's target network included) aside. Weights
+    under which no episode ended, or before ``n_episodes`` episodes have ended in all, are not scored. At the end of
+    ``learn()`` the best weights are loaded back into the policy, so the model ends with them (and ``model.save`` then
+    saves them). Training itself is unchanged: each fit starts from the weights the previous one left.
+
+    With short rollouts (DQN's few steps, NFQ's short rounds) one episode, often exploratory luck, would score the
+    weights: ``n_episodes`` above 1 scores them by the recent run of episodes instead, of which the latest weights
+    played the last ones.
 
     The training env must report its episodes' returns: each env wrapped in ``Monitor`` (as ``make_vec_env`` and an
     env id do) or the ``VecEnv`` in ``VecMonitor``. Logs ``train/best_score``. The best score and weights carry over
@@ -192,17 +198,22 @@ class KeepBestCallback(BaseCallback):
         model.learn(100_000, callback=keep_best)
         print(keep_best.best_score)
 
+    :param n_episodes: the fewest training episodes a score is the mean of (1: the rollout's own episodes alone)
     :param verbose: 1 prints each new best score
     """
 
-    def __init__(self, verbose: int = 0) -> None:
+    def __init__(self, n_episodes: int = 1, verbose: int = 0) -> None:
+        if not is_positive_int(n_episodes):
+            raise ValueError(f"n_episodes must be an int of at least 1 (episodes per score), got {n_episodes!r}")
         super().__init__(verbose)
+        self.n_episodes = n_episodes
         #: The best mean return so far (``None``: no weights scored yet).
         self.best_score: float | None = None
         #: A copy of the policy's ``state_dict()`` that scored ``best_score`` (``None``: none yet).
         self.best_weights: dict[str, th.Tensor] | None = None
-        # Returns of the training episodes that ended since the last judgement.
+        # Returns of the training episodes that ended since the last judgement, and of the latest ones before them.
         self._returns: list[float] = []
+        self._earlier: collections.deque[float] = collections.deque(maxlen=n_episodes)
 
     def _init_callback(self) -> None:
         env = self.training_env
@@ -230,8 +241,12 @@ class KeepBestCallback(BaseCallback):
         """Score the weights that collected the episodes ended since the last judgement; keep them if the best."""
         if not self._returns:
             return
-        score = float(np.mean(self._returns))
+        window = [*self._earlier, *self._returns][-max(self.n_episodes, len(self._returns)) :]
+        self._earlier.extend(self._returns)
         self._returns = []
+        if len(window) < self.n_episodes:
+            return
+        score = float(np.mean(window))
         if self.best_score is None or score >= self.best_score:
             self.best_score = score
             self.best_weights = copy.deepcopy(self.model.policy.state_dict())

@@ -170,6 +170,31 @@ def test_keep_best_leaves_a_lower_score_aside_and_an_equal_score_becomes_the_bes
     assert keep_best.best_score == 25.0 and _same(keep_best.best_weights, fitted)
 
 
+def test_keep_best_with_n_episodes_scores_by_the_last_n_episodes_when_a_rollout_ends_fewer() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gradient_steps=2, seed=0)
+    model.learn(64)
+    keep_best = KeepBestCallback(n_episodes=3)
+    keep_best.init_callback(model)
+    keep_best.on_training_start({}, {})
+    _feed(keep_best, [90.0])
+    _feed(keep_best, [10.0])
+    assert keep_best.best_score is None and keep_best.best_weights is None  # 2 episodes so far: not scored
+    _feed(keep_best, [20.0])
+    assert keep_best.best_score == 40.0  # 90, 10, 20
+    _feed(keep_best, [60.0])
+    assert keep_best.best_score == 40.0  # 10, 20, 60: lower
+    _feed(keep_best, [70.0])
+    assert keep_best.best_score == 50.0  # 20, 60, 70
+    _feed(keep_best, [1.0, 1.0, 1.0, 200.0])  # a rollout that ends more than 3: its own episodes alone
+    assert keep_best.best_score == 50.75
+
+
+def test_keep_best_refuses_n_episodes_below_one() -> None:
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="n_episodes must be an int of at least 1"):
+            KeepBestCallback(n_episodes=bad)  # type: ignore[arg-type]
+
+
 class _RecordWeights(BaseCallback):
     """The policy's weights at each rollout's end and at the end of training (before the callbacks after it)."""
 

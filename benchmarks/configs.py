@@ -1,7 +1,8 @@
 """
 What the benchmark runs: the envs (threshold, evaluation period), the seeds, and the algorithm configs (NFQ: the
 zoo-format files of ``benchmarks/hyperparams/``, never edited once run; the peers: the installed ``rl_zoo3``'s DQN
-and QR-DQN entries; a ``-keep-best`` name runs its base config with ``sb3_nfq.KeepBestCallback``).
+and QR-DQN entries; a ``-keep-best`` or ``-keep-best-<n>`` name runs its base config with
+``sb3_nfq.KeepBestCallback``).
 """
 
 import importlib.metadata
@@ -68,7 +69,9 @@ ONE_CONFIG = SHIPPED["default"]
 REFERENCE = "reference-nfq"
 #: The peers: name -> (kind, the rl_zoo3 hyperparameters file).
 ZOO_PEERS: dict[str, tuple[AlgoKind, str]] = {"dqn-zoo": ("dqn", "dqn.yml"), "qrdqn-zoo": ("qrdqn", "qrdqn.yml")}
-KEEP_BEST_SUFFIX = "-keep-best"
+#: Name suffixes that run the config before them with sb3_nfq.KeepBestCallback: "-keep-best" with its defaults,
+#: "-keep-best-<n>" with n_episodes=n (each score the mean of at least n training episodes).
+KEEP_BEST_SUFFIXES = ("-keep-best", "-keep-best-10")
 #: Keys of the Zoo's format that change the env or the training loop, which the runner does not apply (no config sets
 #: one on the four envs): an entry that sets one is refused rather than half-applied.
 NOT_APPLIED = ("normalize", "env_wrapper", "vec_env_wrapper", "frame_stack", "callback", "env_kwargs", "monitor_kwargs")
@@ -98,16 +101,20 @@ class ResolvedConfig:
 def algorithm_names() -> list[str]:
     """:return: every algorithm config the runner knows, in report order"""
     nfq, peers = (
-        [name + suffix for name in names for suffix in ("", KEEP_BEST_SUFFIX)]
+        [name + suffix for name in names for suffix in ("", *KEEP_BEST_SUFFIXES)]
         for names in (NFQ_CONFIG_NAMES, ZOO_PEERS)
     )
     return [*nfq, REFERENCE, *peers]
 
 
+def keep_best_suffix(algo: str) -> str:
+    """:return: the name's suffix of :data:`KEEP_BEST_SUFFIXES`, or ``""``"""
+    return next((suffix for suffix in KEEP_BEST_SUFFIXES if algo.endswith(suffix)), "")
+
+
 def peers_of(algo: str) -> list[str]:
     """:return: the peers an NFQ config is compared with, selected alike (a ``-keep-best`` config: their -keep-best)"""
-    suffix = KEEP_BEST_SUFFIX if algo.endswith(KEEP_BEST_SUFFIX) else ""
-    return [peer + suffix for peer in ZOO_PEERS]
+    return [peer + keep_best_suffix(algo) for peer in ZOO_PEERS]
 
 
 def measured_names() -> list[str]:
@@ -115,8 +122,8 @@ def measured_names() -> list[str]:
     :return: what the runner runs by default: every config without selection, and each shipped config that ends on its
         best fit with its peers selected alike (:func:`algorithm_names` also has every other config's -keep-best twin)
     """
-    alike = {name for algo in SHIPPED.values() if algo.endswith(KEEP_BEST_SUFFIX) for name in (algo, *peers_of(algo))}
-    return [name for name in algorithm_names() if not name.endswith(KEEP_BEST_SUFFIX) or name in alike]
+    alike = {name for algo in SHIPPED.values() if keep_best_suffix(algo) for name in (algo, *peers_of(algo))}
+    return [name for name in algorithm_names() if not keep_best_suffix(name) or name in alike]
 
 
 def zoo_file(name: str) -> Path:
@@ -135,7 +142,8 @@ def resolve(algo: str, env_id: str) -> ResolvedConfig:
     """
     if env_id not in ENVS:
         raise KeyError(f"unknown env {env_id!r}; known: {sorted(ENVS)}")
-    base = algo.removesuffix(KEEP_BEST_SUFFIX)
+    suffix = keep_best_suffix(algo)
+    base = algo.removesuffix(suffix)
     kind: AlgoKind
     if base in NFQ_CONFIG_NAMES:
         kind, source = "nfq", f"benchmarks/hyperparams/{base}.yml"
@@ -149,8 +157,8 @@ def resolve(algo: str, env_id: str) -> ResolvedConfig:
         source = f"rl_zoo3 {importlib.metadata.version('rl_zoo3')} hyperparams/{file_name}"
     else:
         raise KeyError(f"unknown algorithm config {algo!r}; known: {algorithm_names()}")
-    if algo != base:
-        kwargs["keep_best"] = True
+    if suffix:  # True: the callback's defaults (what the runs before windows recorded); n: n_episodes=n
+        kwargs["keep_best"] = True if suffix == KEEP_BEST_SUFFIXES[0] else int(suffix.rpartition("-")[2])
     if present := [key for key in NOT_APPLIED if key in kwargs]:
         raise NotImplementedError(f"{source}'s entry for {env_id} sets {present}, which the runner does not apply")
     budget = int(float(kwargs.pop("n_timesteps")))

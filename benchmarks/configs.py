@@ -68,9 +68,9 @@ ONE_CONFIG = SHIPPED["default"]
 REFERENCE = "reference-nfq"
 #: The peers: name -> (kind, the rl_zoo3 hyperparameters file).
 ZOO_PEERS: dict[str, tuple[AlgoKind, str]] = {"dqn-zoo": ("dqn", "dqn.yml"), "qrdqn-zoo": ("qrdqn", "qrdqn.yml")}
-#: Name suffixes that run the config before them with sb3_nfq.KeepBestCallback: "-keep-best" with its defaults,
-#: "-keep-best-<n>" with n_episodes=n (each score the mean of at least n training episodes).
-KEEP_BEST_SUFFIXES = ("-keep-best", "-keep-best-10")
+#: Name suffixes that run the config before them with sb3_nfq.KeepBestCallback, and the ``keep_best`` value they
+#: record: ``True``, the callback's defaults (as the runs before ``n_episodes`` recorded), or ``n_episodes``.
+KEEP_BEST_SUFFIXES: dict[str, bool | int] = {"-keep-best": True, "-keep-best-10": 10}
 #: Keys of the Zoo's format that change the env or the training loop, which the runner does not apply (no config sets
 #: one on the four envs): an entry that sets one is refused rather than half-applied.
 NOT_APPLIED = ("normalize", "env_wrapper", "vec_env_wrapper", "frame_stack", "callback", "env_kwargs", "monitor_kwargs")
@@ -156,8 +156,8 @@ def resolve(algo: str, env_id: str) -> ResolvedConfig:
         source = f"rl_zoo3 {importlib.metadata.version('rl_zoo3')} hyperparams/{file_name}"
     else:
         raise KeyError(f"unknown algorithm config {algo!r}; known: {algorithm_names()}")
-    if suffix:  # True: the callback's defaults (what the runs before windows recorded); n: n_episodes=n
-        kwargs["keep_best"] = True if suffix == KEEP_BEST_SUFFIXES[0] else int(suffix.rpartition("-")[2])
+    if suffix:
+        kwargs["keep_best"] = KEEP_BEST_SUFFIXES[suffix]
     if present := [key for key in NOT_APPLIED if key in kwargs]:
         raise NotImplementedError(f"{source}'s entry for {env_id} sets {present}, which the runner does not apply")
     budget = int(float(kwargs.pop("n_timesteps")))

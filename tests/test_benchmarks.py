@@ -347,26 +347,3 @@ def test_targets_file_is_refused_with_a_missing_or_unknown_key(tmp_path: Path) -
     bad.write_text(yaml.safe_dump({**targets, "speed": {}}))
     with pytest.raises(ValueError, match="unknown sections"):
         report.read_targets(bad)
-
-
-def test_one_config_tuning_scores_each_env_from_random_actions_to_the_threshold(tmp_path: Path) -> None:
-    import optuna
-    from optuna.storages import JournalStorage
-    from optuna.storages.journal import JournalFileBackend
-
-    from benchmarks import tune_one_config
-
-    assert tune_one_config.dqn_budgets(run.DEFAULT_RESULTS, ["Acrobot-v1"]) == {"Acrobot-v1": 22_528}
-    storage, envs = tmp_path / "study.log", ["CartPole-v1", "Acrobot-v1"]
-    argv = ["--storage", str(storage), "--n-trials", "2", "--eval-episodes", "2", "--budget", "256", "--envs", *envs]
-    with pytest.raises(SystemExit):
-        tune_one_config.main(["--seed", "5", *argv])  # a held-out seed
-    assert tune_one_config.main(["--seed", "100", *argv]) == 0
-    study = optuna.load_study(study_name="nfq-one-config", storage=JournalStorage(JournalFileBackend(str(storage))))
-    floors = study.user_attrs["seed 100"]["random_actions"]
-    assert floors["Acrobot-v1"] == -500.0 and 10 < floors["CartPole-v1"] < 50
-    for trial in study.trials:
-        scores = [trial.user_attrs[env]["mean_return"] for env in envs]
-        scaled = [(s - floors[e]) / (configs.ENVS[e].threshold - floors[e]) for e, s in zip(envs, scores, strict=True)]
-        assert trial.value == pytest.approx(min(1.0, *scaled))
-    assert len(study.trials) == 2 and study.trials[0].params != study.trials[1].params

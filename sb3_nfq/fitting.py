@@ -161,6 +161,12 @@ def take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferS
     )
 
 
+#: Most rows of one target pass over the memory. A pass over tens of thousands of rows at once moves activations too
+#: large for the CPU's caches through memory, layer after layer; passes over pieces this size compute the same rows
+#: with the activations in cache.
+TARGET_CHUNK_ROWS = 2048
+
+
 def td_targets(q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float) -> th.Tensor:
     """
     :param q_net: the Q-network
@@ -168,14 +174,16 @@ def td_targets(q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float) -> 
     :param gamma: the discount factor
     :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the network in eval mode (no Dropout,
         BatchNorm's running statistics used and left as they are), as a constant (no graph), shape ``(n, 1)``;
-        computed in chunks so that a large memory fits in memory.
+        computed in chunks of at most :data:`TARGET_CHUNK_ROWS` rows (fewer for large observations, so that a
+        large memory fits in memory)
     """
     with th.no_grad(), eval_mode(q_net):
-        n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.next_observations)
+        n_transitions = len(data.rewards)
+        chunk_rows = min(rows_per_chunk(data.next_observations), TARGET_CHUNK_ROWS)
         if n_transitions <= chunk_rows:
             next_q_values = q_net(data.next_observations).max(dim=1).values
         else:
-            chunks = th.arange(n_transitions, device=data.rewards.device).split(chunk_rows)
+            chunks = (slice(start, start + chunk_rows) for start in range(0, n_transitions, chunk_rows))
             next_q_values = th.cat(
                 [q_net(take_rows(data.next_observations, rows)).max(dim=1).values for rows in chunks]
             )

@@ -174,7 +174,7 @@ def td_targets(q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float) -> 
     :param gamma: the discount factor
     :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the network in eval mode (no Dropout,
         BatchNorm's running statistics used and left as they are), as a constant (no graph), shape ``(n, 1)``;
-        computed in chunks so that a large memory fits in memory, on a CPU of at most :data:`TARGET_CHUNK_ROWS` rows
+        computed in chunks so that a large memory fits in memory (on a CPU, of at most :data:`TARGET_CHUNK_ROWS` rows)
     """
     with th.no_grad(), eval_mode(q_net):
         n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.next_observations)

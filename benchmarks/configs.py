@@ -52,6 +52,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-front-loaded-batch-128",
     "nfq-short-rounds-lr-lin-4e-3-huber-5",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
+    "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-80k",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-every-256",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-memory-50k",
 )

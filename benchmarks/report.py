@@ -505,11 +505,16 @@ def book_protocol_lines(records: Sequence[dict[str, Any]]) -> list[str]:
 
 
 def comparison_row(cells: Sequence[Cell], seeds: str) -> dict[str, str]:
-    """:return: the README table's columns for ``cells`` run side by side, the NFQ config first"""
+    """
+    :return: the README table's columns for ``cells`` run side by side, the NFQ config first (one budget if all ran
+        the same)
+    """
+    budgets = [f"{cell.budget:,}" for cell in cells]
     return {
         "env": cells[0].env,
         "seeds": seeds,
         "NFQ config vs peers": " vs ".join(cell.algo for cell in cells),
+        "budget": budgets[0] if len(set(budgets)) == 1 else " vs ".join(budgets),
         "steps to solve: median": " vs ".join(_steps(*cell.steps_quantile(50)) for cell in cells),
         "final score ≥ threshold": " vs ".join(f"{cell.n_at_threshold()}/{cell.n}" for cell in cells),
         "train s: median": " vs ".join(f"{np.median(cell.column('train_seconds')):.0f}" for cell in cells),

@@ -318,13 +318,19 @@ def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_
     assert cells is not None and [[r["seed"] for r in cell.runs] for cell in cells] == [[5, 6]] * 3
 
 
-def test_readme_table_shows_the_held_out_rows_and_how_many_seeds_have_run(held_out: list[dict[str, Any]]) -> None:
+def test_readme_table_shows_the_held_out_rows_their_budgets_and_how_many_seeds_have_run(
+    held_out: list[dict[str, Any]],
+) -> None:
     book = run.read_results(RESULTS / "book_protocol.jsonl")
     rows = {row.split("|")[1].strip(): row for row in report.readme_table(held_out, book).splitlines()[2:]}
     all_seeds, book_row = rows["MountainCar-v0"], rows["CartPole-v1, the book's criterion"]
     assert "5-14 (held out)" in all_seeds and "40,448 vs 92,160 vs 99,328" in all_seeds
     assert "8/10 vs 3/10 vs 6/10" in all_seeds
     assert "330,964 vs 320,831" in book_row and "--protocol book" in book_row
+    assert "| 120,000 " in all_seeds and "| 500,000 " in book_row  # one budget where every algorithm ran the same
+    shorter = [r | {"budget": 80_000} if r["algo"] == configs.SHIPPED["MountainCar-v0"] else r for r in held_out]
+    (row,) = [row for row in report.readme_table(shorter, book).splitlines() if row.startswith("| MountainCar")]
+    assert "| 80,000 vs 120,000 vs 120,000 " in row
     first_half = [r for r in run.read_results(RESULTS / "held_out.jsonl") if "--seeds 5-9 " in r["command"]]
     table = report.readme_table(first_half, book)
     (mountain_car,) = [row for row in table.splitlines() if row.startswith("| MountainCar")]

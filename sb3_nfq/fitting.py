@@ -132,6 +132,19 @@ def minibatch_indices(n_transitions: int, batch_size: int | None, device: th.dev
     yield from batches
 
 
+def iteration_rows(n_transitions: int, iteration_transitions: int | None, device: th.device) -> th.Tensor | None:
+    """
+    :param n_transitions: number of transitions in the memory
+    :param iteration_transitions: NFQ's ``iteration_transitions``
+    :param device: device of the index tensor
+    :return: ``None`` (the whole memory: no random number is drawn), or the rows of ``iteration_transitions``
+        transitions drawn at random without replacement, when the memory holds more
+    """
+    if iteration_transitions is None or iteration_transitions >= n_transitions:
+        return None
+    return th.randperm(n_transitions, device=device)[:iteration_transitions]
+
+
 def take_rows(observations: Any, rows: th.Tensor | slice) -> Any:
     """:return: the given rows of observations (a tensor, or a dict of tensors)"""
     if isinstance(observations, dict):

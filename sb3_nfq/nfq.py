@@ -33,6 +33,7 @@ from sb3_nfq.exploration import (
 from sb3_nfq.fitting import (
     check_loss_is_finite,
     check_q_values_bounded,
+    iteration_rows,
     loss_and_gradient,
     minibatch_indices,
     shared_successor_states,
@@ -87,6 +88,9 @@ class NFQ(OffPolicyAlgorithm):
     :param target_mode: ``"recompute_every_step"`` (textbook): TD targets recomputed before every gradient step;
         ``"fixed_per_iteration"`` (fitted Q-iteration): once per iteration, then ``fit_epochs`` epochs on them
     :param fit_epochs: Epochs of regression on the fixed targets per fitted iteration (``"fixed_per_iteration"``)
+    :param iteration_transitions: ``None`` (textbook): each fitted iteration covers the whole memory. An integer: a
+        memory holding more has each iteration cover that many of its transitions, drawn at random (a memory larger
+        than one iteration's fit, as DQN's replay buffer is larger than its gradient steps cover)
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param huber_delta: With ``loss="huber"``, the TD error where the loss turns linear (1.0: SB3 DQN's loss)
@@ -139,6 +143,7 @@ class NFQ(OffPolicyAlgorithm):
         round_fraction_offset: int = 0,
         target_mode: TargetModeName = "recompute_every_step",
         fit_epochs: int = 1,
+        iteration_transitions: int | None = None,
         gamma: float = 1.0,
         loss: LossName = "mse",
         huber_delta: float = 1.0,
@@ -186,6 +191,7 @@ class NFQ(OffPolicyAlgorithm):
         self.round_fraction_offset = round_fraction_offset
         self.target_mode = target_mode
         self.fit_epochs = fit_epochs
+        self.iteration_transitions = iteration_transitions
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
         self.exploration_fraction = exploration_fraction
@@ -362,16 +368,18 @@ class NFQ(OffPolicyAlgorithm):
 
         losses = []
         for iteration in range(gradient_steps):
+            rows = iteration_rows(n_transitions, self.iteration_transitions, device)
+            data, shared = (batch, shared_states) if rows is None else (take(batch, rows), None)
             # Classic fitted Q-iteration regresses on targets fixed for the iteration; the textbook recomputes them.
-            fixed = td_targets(self.q_net, batch, self.gamma) if self.target_mode == "fixed_per_iteration" else None
-            q_abs_max = th.zeros((), device=device)  # over the last iteration: its steps cover the batch
+            fixed = td_targets(self.q_net, data, self.gamma) if self.target_mode == "fixed_per_iteration" else None
+            q_abs_max = th.zeros((), device=device)  # over the last iteration: its steps cover its transitions
             for _ in range(self.fit_epochs):
-                for indices in minibatch_indices(n_transitions, batch_size, device):
+                for indices in minibatch_indices(len(data.rewards), batch_size, device):
                     known = fixed if fixed is None or indices is None else fixed[indices]
                     # Targets, the loss and its gradient; the step only if the loss is finite.
                     self.policy.optimizer.zero_grad()
                     loss_value, q_values, targets = loss_and_gradient(
-                        self.q_net, loss_fn, self.gamma, take(batch, indices), known, shared_states
+                        self.q_net, loss_fn, self.gamma, take(data, indices), known, shared
                     )
                     check_loss_is_finite(loss_value, self._n_rounds, iteration + 1, gradient_steps, self.num_timesteps)
                     if self.max_grad_norm is not None:

@@ -150,6 +150,7 @@ def check_hyperparameters(
     round_fraction_offset: int,
     target_mode: str,
     fit_epochs: int,
+    iteration_transitions: int | None,
     gamma: float,
     loss: str,
     huber_delta: float,
@@ -172,11 +173,13 @@ def check_hyperparameters(
         ("fit_epochs", fit_epochs),
         ("batch_size", batch_size),
         ("buffer_size", buffer_size),
+        ("iteration_transitions", iteration_transitions),
     ):
-        if value is None and name in ("batch_size", "buffer_size"):
+        nullable = name in ("batch_size", "buffer_size", "iteration_transitions")
+        if value is None and nullable:
             continue
         if not is_positive_int(value):
-            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            raise ValueError(f"{name} must be a positive integer{' or None' if nullable else ''}, got {value!r}")
     if not 0.0 <= gamma <= 1.0:
         raise ValueError(f"gamma must be in [0, 1], got {gamma!r}")
     if loss not in LOSSES:

@@ -171,6 +171,44 @@ def test_rprop_trains_full_batch_in_both_memories() -> None:
         assert {len(x) for x in fitting.grad_inputs} == ({64} if memory == "fresh" else {64, 128})
 
 
+def test_iteration_transitions_fits_each_iteration_on_that_many_of_a_larger_memory_drawn_at_random() -> None:
+    model = NFQ(
+        "MlpPolicy",
+        "CartPole-v1",
+        memory="growing",
+        target_mode="fixed_per_iteration",
+        iteration_transitions=96,
+        batch_size=32,
+        train_freq=64,
+        gradient_steps=2,
+        seed=0,
+    )
+    fitting = record_fitting(model)
+    recorder = TransitionRecorder()
+    model.learn(192, callback=recorder)
+
+    # per iteration, one target pass then one epoch of 32-row mini-batches: over the whole memory of 64, then over
+    # 96 of the 128 and of the 192
+    assert [size for size in fitting.no_grad_batch_sizes if size > 1] == [64, 64, 96, 96, 96, 96]
+    assert [len(x) for x in fitting.grad_inputs] == [32] * 2 * 2 + [32] * 3 * 4
+    all_obs, _, _ = recorder.transitions(0, 192)
+    memory = {tuple(row) for row in all_obs}
+    last_two = fitting.grad_inputs[-6:-3], fitting.grad_inputs[-3:]
+    iterations = [{tuple(row) for row in th.cat(inputs).numpy()} for inputs in last_two]
+    assert all(len(rows) == 96 and rows <= memory for rows in iterations)
+    assert iterations[0] != iterations[1]  # drawn anew for each iteration
+
+
+def test_iteration_transitions_at_least_the_memory_fits_as_without_it() -> None:
+    def weights(**kwargs: Any) -> list[th.Tensor]:
+        model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, batch_size=32, seed=0, **kwargs)
+        model.learn(192)
+        return [p.detach() for p in model.q_net.parameters()]
+
+    for got, expected in zip(weights(iteration_transitions=192), weights(), strict=True):
+        th.testing.assert_close(got, expected, rtol=0, atol=0)
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [
@@ -202,6 +240,7 @@ def test_rprop_with_a_batch_size_that_covers_the_whole_fresh_round_takes_full_ba
         ({"memory": "all"}, r"memory must be one of \['fresh', 'growing'\], got 'all'"),
         ({"target_mode": "fixed"}, r"target_mode must be one of \['recompute_every_step', 'fixed_per_iteration'\]"),
         ({"fit_epochs": 0}, "fit_epochs must be a positive integer"),
+        ({"iteration_transitions": 0}, "iteration_transitions must be a positive integer or None, got 0"),
         ({"fit_epochs": 3}, "fit_epochs=3 needs target_mode='fixed_per_iteration'"),
         ({"memory": "growing", "buffer_size": 100}, "buffer_size=100 is smaller than one round of 1024"),
     ],
@@ -218,6 +257,7 @@ def test_variant_settings_and_the_growing_memory_survive_save_and_load(tmp_path:
         memory="growing",
         target_mode="fixed_per_iteration",
         fit_epochs=2,
+        iteration_transitions=4096,
         train_freq=64,
         gradient_steps=1,
     )
@@ -226,7 +266,8 @@ def test_variant_settings_and_the_growing_memory_survive_save_and_load(tmp_path:
     model.save_replay_buffer(tmp_path / "memory.pkl")
 
     loaded = NFQ.load(tmp_path / "model.zip", env=model.get_env())
-    assert (loaded.memory, loaded.target_mode, loaded.fit_epochs) == ("growing", "fixed_per_iteration", 2)
+    saved = (loaded.memory, loaded.target_mode, loaded.fit_epochs, loaded.iteration_transitions)
+    assert saved == ("growing", "fixed_per_iteration", 2, 4096)
     loaded.load_replay_buffer(tmp_path / "memory.pkl")
     fitting = record_fitting(loaded)
     loaded.learn(64, reset_num_timesteps=False)

@@ -54,7 +54,6 @@ NFQ_CONFIG_NAMES = (
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-every-256",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-iteration-10k",
-    "nfq-short-rounds-lr-lin-4e-3-huber-5-memory-50k-iteration-20k",
 )
 #: The benchmark config each entry of the shipped sb3_nfq/hyperparams/nfq.yml was measured as.
 SHIPPED: dict[str, str] = {

@@ -282,7 +282,7 @@ class NFQ(OffPolicyAlgorithm):
         by_episode = length.unit == TrainFrequencyUnit.EPISODE
         while True:
             if (self._round_episodes if by_episode else self._round_steps) >= self._round_size(length):
-                # 2. Fit: gradient_steps fitted iterations on the whole memory.
+                # 2. Fit: gradient_steps fitted iterations on the memory.
                 self.train(gradient_steps=self.gradient_steps, batch_size=self.batch_size)
                 self._round_steps = self._round_episodes = self._round_target = 0
                 # 3. The textbook discards the fitted round; a growing memory keeps it.
@@ -338,7 +338,8 @@ class NFQ(OffPolicyAlgorithm):
 
     def train(self, gradient_steps: int, batch_size: int | None = None) -> None:
         """
-        Run ``gradient_steps`` fitted iterations, each covering every transition in the memory.
+        Run ``gradient_steps`` fitted iterations, each covering every transition in the memory (with
+        ``iteration_transitions``, at most that many of them, drawn at random).
 
         :param gradient_steps: Number of fitted iterations (the book's K)
         :param batch_size: ``None``: one full-batch step per epoch; else shuffled mini-batches of this size

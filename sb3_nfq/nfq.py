@@ -237,7 +237,11 @@ class NFQ(OffPolicyAlgorithm):
         # Rprop needs a round's fit in full batches, which only a fresh memory of step rounds bounds.
         fit_size = rounds.fresh_round_transitions(self.train_freq, self.n_envs, self.memory)
         check_full_batch_optimizer(
-            self.policy.optimizer, self.batch_size, fit_size, f"a round's fit (memory={self.memory!r})"
+            self.policy.optimizer,
+            self.batch_size,
+            self.iteration_transitions,
+            fit_size,
+            f"a round's fit (memory={self.memory!r})",
         )
         self.exploration_schedule = LinearSchedule(
             self.exploration_initial_eps, self.exploration_final_eps, self.exploration_fraction
@@ -435,7 +439,11 @@ class NFQ(OffPolicyAlgorithm):
         if not is_positive_int(iterations):
             raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
         check_full_batch_optimizer(
-            self.policy.optimizer, self.batch_size, len(dataset), f"the dataset's {len(dataset)} transitions"
+            self.policy.optimizer,
+            self.batch_size,
+            self.iteration_transitions,
+            len(dataset),
+            f"the dataset's {len(dataset)} transitions",
         )
         if not hasattr(self, "_logger"):
             self.set_logger(configure_logger(self.verbose, self.tensorboard_log, "NFQ_offline"))

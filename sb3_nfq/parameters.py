@@ -260,22 +260,34 @@ def loss_function(loss: LossName, huber_delta: float) -> Callable[..., th.Tensor
 
 
 def check_full_batch_optimizer(
-    optimizer: th.optim.Optimizer, batch_size: int | None, n_transitions: int | None, what: str
+    optimizer: th.optim.Optimizer,
+    batch_size: int | None,
+    iteration_transitions: int | None,
+    n_transitions: int | None,
+    what: str,
 ) -> None:
     """
-    Rprop adapts each weight's step from the signs of successive gradients: they must be full-batch.
+    Rprop adapts each weight's step from the signs of successive gradients: they must be full-batch, over the same
+    transitions from one step to the next.
 
     :param optimizer: the policy's optimizer
     :param batch_size: NFQ's ``batch_size``
-    :param n_transitions: how many transitions a fit covers; ``None`` when it can grow past any ``batch_size``
+    :param iteration_transitions: NFQ's ``iteration_transitions``
+    :param n_transitions: how many transitions a fit covers; ``None`` when it can grow past any bound
     :param what: what a fit covers, for the message
     """
-    if not isinstance(optimizer, th.optim.Rprop) or batch_size is None:
+    if not isinstance(optimizer, th.optim.Rprop):
         return
-    if n_transitions is None or batch_size < n_transitions:
+    use = "or another optimizer_class (RMSprop, Adam)"
+    if batch_size is not None and (n_transitions is None or batch_size < n_transitions):
         raise ValueError(
             f"Rprop needs full-batch gradients, but batch_size={batch_size} would split {what} into mini-batches. "
-            "Use batch_size=None with Rprop, or another optimizer_class (RMSprop, Adam) for mini-batches."
+            f"Use batch_size=None with Rprop, {use} for mini-batches."
+        )
+    if iteration_transitions is not None and (n_transitions is None or iteration_transitions < n_transitions):
+        raise ValueError(
+            f"Rprop needs full-batch gradients, but iteration_transitions={iteration_transitions} would fit a "
+            f"different part of {what} in each iteration. Use iteration_transitions=None with Rprop, {use}."
         )
 
 

@@ -181,6 +181,14 @@ def test_rprop_offline_with_minibatches_is_refused() -> None:
         model.fit_offline(dataset)
 
 
+def test_rprop_offline_with_iteration_transitions_below_the_dataset_is_refused() -> None:
+    dataset = TransitionDataset.from_arrays(**_good_arrays())
+    rprop = {"optimizer_class": th.optim.Rprop}
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=2, iteration_transitions=2, policy_kwargs=rprop)
+    with pytest.raises(ValueError, match="iteration_transitions=2 would fit a different part of the dataset's"):
+        model.fit_offline(dataset)
+
+
 def test_not_a_replay_buffer_file_is_rejected(tmp_path: Path) -> None:
     path = tmp_path / "buffer.pkl"
     path.write_text("garbage")

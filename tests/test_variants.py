@@ -222,6 +222,28 @@ def test_rprop_with_minibatches_is_refused(kwargs: dict) -> None:
         NFQ("MlpPolicy", "CartPole-v1", policy_kwargs={"optimizer_class": th.optim.Rprop}, **kwargs)
 
 
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"memory": "growing", "iteration_transitions": 64},
+        {"memory": "fresh", "train_freq": 128, "iteration_transitions": 64},
+        {"memory": "fresh", "train_freq": (3, "episode"), "buffer_size": 5000, "iteration_transitions": 64},
+    ],
+)
+def test_rprop_with_iteration_transitions_that_can_split_the_fit_is_refused(kwargs: dict) -> None:
+    with pytest.raises(ValueError, match="Rprop needs full-batch gradients, but iteration_transitions=64 would fit"):
+        NFQ("MlpPolicy", "CartPole-v1", policy_kwargs={"optimizer_class": th.optim.Rprop}, **kwargs)
+
+
+def test_rprop_with_iteration_transitions_that_cover_the_fresh_round_takes_full_batch_steps() -> None:
+    policy_kwargs = {"optimizer_class": th.optim.Rprop}
+    model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=2, iteration_transitions=64, seed=0,
+                policy_kwargs=policy_kwargs)  # fmt: skip
+    fitting = record_fitting(model)
+    model.learn(64)
+    assert fitting.optimizer_steps == 2 and [len(x) for x in fitting.grad_inputs] == [64, 64]
+
+
 def test_rprop_with_a_batch_size_that_covers_the_whole_fresh_round_takes_full_batch_steps() -> None:
     kwargs: dict[str, Any] = {
         "policy_kwargs": {"optimizer_class": th.optim.Rprop},

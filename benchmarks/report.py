@@ -27,8 +27,6 @@ from benchmarks.run import (
     DEFAULT_HELD_OUT,
     DEFAULT_RESULTS,
     REPO_ROOT,
-    machine_line,
-    package_versions,
     read_results,
     relative_command,
 )
@@ -551,24 +549,6 @@ def replace_block(text: str, markers: tuple[str, str], block: str) -> str:
     """:return: ``text`` with ``block`` between the two markers (which stay)"""
     start, end = text.index(markers[0]) + len(markers[0]), text.index(markers[1])
     return text[:start] + "\n" + block + "\n" + text[end:]
-
-
-def publish(out: Path, results: list[dict[str, Any]], block: str, markers: tuple[str, str], **extra: Any) -> None:
-    """
-    Write a measurement's results: as JSON at ``out`` (with this machine and the package versions), the markdown
-    ``block`` beside it (``.md``), and the block between ``markers`` in the top-level README when it has them.
-
-    :param out: the JSON file
-    :param results: one entry per run (JSON-serialisable)
-    :param block: their markdown table
-    :param markers: the README's start and end markers of the block
-    :param extra: more JSON fields, after the results
-    """
-    payload = {"machine": machine_line(), "versions": package_versions(), "results": results, **extra}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(payload, indent=2) + "\n")
-    out.with_suffix(".md").write_text(block + "\n")
-    write_readme_block(markers, block)
 
 
 def write_readme_block(markers: tuple[str, str], block: str) -> bool:

@@ -1,8 +1,8 @@
 """Every example runs as is (here on tiny budgets)."""
 
 import json
-import re
 import runpy
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -12,17 +12,12 @@ import torch as th
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
 
-from benchmarks import dqn_swap
+from benchmarks.run import script_result
 from sb3_nfq import NFQ
 from sb3_nfq.configs import nfq_kwargs
 from sb3_nfq.parameters import HYPERPARAMETERS
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-
-
-def _cells(line: str) -> list[str]:
-    """:return: the cells of a markdown table's row (an escaped ``\\|`` stays inside its cell)"""
-    return [cell.strip() for cell in re.split(r"(?<!\\)\|", line)[1:-1]]
 
 
 def _module(name: str) -> dict[str, Any]:
@@ -145,17 +140,12 @@ def test_coming_from_dqn_nfq_script_uses_the_shipped_cartpole_entry_and_dqns_buf
 
 @pytest.mark.slow  # two fresh processes: about a minute on a busy 2-core machine
 def test_coming_from_dqn_scripts_train_save_load_and_evaluate_at_the_same_budget(tmp_path: Path) -> None:
-    results = [dqn_swap.run_script(name, 2048, 0, tmp_path) for name in ("dqn_cartpole.py", "nfq_cartpole.py")]
+    def run(name: str) -> dict[str, Any]:
+        script = EXAMPLES / "coming_from_dqn" / name
+        options = ["--total-timesteps", "2048", "--seed", "0", "--threads", "1", "--log-dir", str(tmp_path)]
+        return script_result([sys.executable, str(script), *options])[0]
+
+    results = [run(name) for name in ("dqn_cartpole.py", "nfq_cartpole.py")]
     assert [(r["algo"], r["steps"], r["threads"]) for r in results] == [("DQN", 2048, 1), ("NFQ", 2048, 1)]
     assert (tmp_path / "dqn" / "dqn_cartpole.zip").is_file() and (tmp_path / "nfq" / "nfq_cartpole.zip").is_file()
     assert NFQ.load(tmp_path / "nfq" / "nfq_cartpole.zip").memory == "growing"
-    nfq_row = _cells(dqn_swap.table(results).splitlines()[3])
-    assert nfq_row[:3] == ["`examples/coming_from_dqn/nfq_cartpole.py`", "2,048", "1"]
-
-
-def test_coming_from_dqn_settings_table_puts_the_two_scripts_side_by_side() -> None:
-    rows = {cells[0].strip("`"): cells[1:] for cells in map(_cells, dqn_swap.settings_table().splitlines()[2:])}
-    assert rows["learning_starts"] == ["`1000`", "-"]  # DQN only
-    assert rows["memory"] == ["-", "`'growing'`"]  # NFQ only
-    assert rows["batch_size"] == ["`64`", "`128`"]  # both, each its own
-    assert "KeepBestCallback" in rows["learn(callback=...)"][1]

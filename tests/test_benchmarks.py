@@ -149,7 +149,7 @@ def test_recorded_runs_of_kept_configs_keep_their_job_keys() -> None:
         fields["protocol"] = record.get("protocol", "rounds")
         (job,) = run.make_jobs([record["algo"]], [record["env"]], [record["seed"]], **fields)
         assert job.key == run.result_key(record)
-    assert len(kept) > 300
+    assert len(kept) > 250
 
 
 def test_evaluation_episode_i_starts_from_reset_seed_base_plus_i() -> None:
@@ -248,7 +248,8 @@ def recorded() -> list[dict[str, Any]]:
     return [r for r in run.read_results(RESULTS / "runs.jsonl") if r["env"] == "CartPole-v1" and r["algo"] in algos]
 
 
-#: MountainCar's entry when its held-out seeds were run beside both peers (the report's numbers below are theirs).
+#: MountainCar's entry before the current one (retired): the report's numbers below are those of its recorded
+#: held-out runs beside both peers.
 RECORDED_MOUNTAIN_CAR = "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2"
 
 

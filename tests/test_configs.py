@@ -44,10 +44,10 @@ def test_the_entries_are_the_configs_measured_for_them() -> None:
     assert cartpole["callback"] == "sb3_nfq.KeepBestCallback" and "keep_best" not in cartpole
     # LunarLander: nfq-short-rounds-lr-lin-4e-3-huber-5; MountainCar's (and default's) adds repeated random actions and
     # sampled iterations
-    lunar_lander = read_entry("LunarLander-v3")
-    assert (lunar_lander["loss"], lunar_lander["huber_delta"], lunar_lander["learning_rate"]) == ("huber", 5.0, "lin_0.004")
+    lunar = read_entry("LunarLander-v3")
+    assert (lunar["loss"], lunar["huber_delta"], lunar["learning_rate"]) == ("huber", 5.0, "lin_0.004")
     repeats_and_samples = {"exploration_repeat_mu": 2.0, "iteration_transitions": 10000}
-    assert {**mountain_car, "n_timesteps": 0} == {**lunar_lander, "n_timesteps": 0, **repeats_and_samples}
+    assert {**mountain_car, "n_timesteps": 0} == {**lunar, "n_timesteps": 0, **repeats_and_samples}
     assert {**read_entry("Acrobot-v1"), "n_timesteps": 0} == {**cartpole, "n_timesteps": 0}  # CartPole's entry
     assert {**default, "n_timesteps": 0} == {**mountain_car, "n_timesteps": 0}  # the one config: MountainCar's entry
 

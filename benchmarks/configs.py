@@ -52,7 +52,6 @@ NFQ_CONFIG_NAMES = (
     "nfq-front-loaded-batch-128",
     "nfq-short-rounds-lr-lin-4e-3-huber-5",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-iteration-10k",
-    "nfq-short-rounds-lr-lin-4e-3-huber-5-k2-iteration-10k",
 )
 #: The benchmark config each entry of the shipped sb3_nfq/hyperparams/nfq.yml was measured as.
 SHIPPED: dict[str, str] = {

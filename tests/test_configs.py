@@ -48,7 +48,8 @@ def test_the_entries_are_the_configs_measured_for_them() -> None:
     assert (lunar["loss"], lunar["huber_delta"], lunar["learning_rate"]) == ("huber", 5.0, "lin_0.004")
     repeats_and_samples = {"exploration_repeat_mu": 2.0, "iteration_transitions": 10000}
     assert {**mountain_car, "n_timesteps": 0} == {**lunar, "n_timesteps": 0, **repeats_and_samples}
-    assert {**read_entry("Acrobot-v1"), "n_timesteps": 0} == {**cartpole, "n_timesteps": 0}  # CartPole's entry
+    # Acrobot: nfq-front-loaded-batch-128-k12-keep-best, CartPole's entry with 12 fitted iterations per round
+    assert {**read_entry("Acrobot-v1"), "n_timesteps": 0} == {**cartpole, "n_timesteps": 0, "gradient_steps": 12}
     assert {**default, "n_timesteps": 0} == {**mountain_car, "n_timesteps": 0}  # the one config: MountainCar's entry
 
 

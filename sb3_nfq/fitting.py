@@ -161,7 +161,7 @@ def take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferS
     """
     :param batch: transitions
     :param indices: which ones (``None``: all)
-    :return: the selected transitions (``discounts``, unused by NFQ, stays ``None``)
+    :return: the selected transitions
     """
     if indices is None:
         return batch
@@ -171,6 +171,7 @@ def take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferS
         next_observations=take_obs(batch.next_observations, indices),
         dones=batch.dones[indices],
         rewards=batch.rewards[indices],
+        discounts=None if batch.discounts is None else batch.discounts[indices],
     )
 
 
@@ -180,11 +181,16 @@ def take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferS
 TARGET_CHUNK_ROWS = 2048
 
 
+def discount(data: ReplayBufferSamples, gamma: float) -> th.Tensor | float:
+    """:return: what the transitions' bootstrapped values are discounted by: ``discounts`` (n-step), else ``gamma``"""
+    return gamma if data.discounts is None else data.discounts
+
+
 def td_targets(q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float) -> th.Tensor:
     """
     :param q_net: the Q-network
     :param data: transitions
-    :param gamma: the discount factor
+    :param gamma: the discount factor (n-step transitions carry their own, ``discounts``)
     :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the network in eval mode (no Dropout,
         BatchNorm's running statistics used and left as they are), as a constant (no graph), shape ``(n, 1)``;
         computed in chunks so that a large memory fits in memory (on a CPU, of at most :data:`TARGET_CHUNK_ROWS` rows)
@@ -200,7 +206,7 @@ def td_targets(q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float) -> 
             next_q_values = th.cat(
                 [q_net(take_rows(data.next_observations, rows)).max(dim=1).values for rows in chunks]
             )
-        return data.rewards + (1 - data.dones) * gamma * next_q_values.reshape(-1, 1)
+        return data.rewards + (1 - data.dones) * discount(data, gamma) * next_q_values.reshape(-1, 1)
 
 
 def states_and_successors(batch: ReplayBufferSamples, n_envs: int) -> tuple[th.Tensor, th.Tensor] | None:
@@ -280,7 +286,7 @@ def loss_and_gradient(
         with th.no_grad():
             q_candidates = th.cat([all_q_values.detach(), q_net(new_next_observations)])
             next_q_values = q_candidates[next_rows].max(dim=1).values.reshape(-1, 1)
-            targets = data.rewards + (1 - data.dones) * gamma * next_q_values
+            targets = data.rewards + (1 - data.dones) * discount(data, gamma) * next_q_values
         q_values = th.gather(all_q_values, 1, data.actions.long())
     elif n_transitions <= chunk_rows:
         targets = td_targets(q_net, data, gamma) if targets is None else targets

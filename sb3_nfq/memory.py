@@ -154,15 +154,21 @@ def flatten(buffer: BaseBuffer, array: np.ndarray) -> np.ndarray:
     return array[:n_rows].reshape(n_rows * buffer.n_envs, *array.shape[2:])
 
 
-def stored_transitions(buffer: ReplayBuffer, vec_normalize_env: VecNormalize | None = None) -> ReplayBufferSamples:
+def stored_transitions(
+    buffer: ReplayBuffer, vec_normalize_env: VecNormalize | None = None, n_steps: int = 1, gamma: float = 1.0
+) -> ReplayBufferSamples:
     """
     :param buffer: NFQ's memory (or a dataset's buffer)
     :param vec_normalize_env: normalises observations and rewards for the fit, as SB3's ``sample`` does
+    :param n_steps: above 1, each transition with its ``n_steps``-step return instead (:func:`n_step_transitions`)
+    :param gamma: with ``n_steps`` above 1, the discount factor
     :return: every transition in the buffer, in its row order (step-major, then env: collection order until a
         growing memory is full, after which new rows overwrite the oldest in place), as tensors that share the
         buffer's memory on the CPU (no copy of the memory per round). ``dones`` is 1 only for true terminations:
         time-limit truncations bootstrap.
     """
+    if n_steps > 1:
+        return n_step_transitions(buffer, vec_normalize_env, n_steps, gamma)
 
     def flat_obs(obs: np.ndarray | dict[str, np.ndarray]) -> Any:
         if isinstance(obs, dict):
@@ -181,4 +187,51 @@ def stored_transitions(buffer: ReplayBuffer, vec_normalize_env: VecNormalize | N
         next_observations=flat_obs(buffer.next_observations),
         dones=buffer.to_torch(terminated.reshape(-1, 1)),
         rewards=buffer.to_torch(rewards),
+    )
+
+
+def n_step_transitions(
+    buffer: ReplayBuffer, vec_normalize_env: VecNormalize | None, n_steps: int, gamma: float
+) -> ReplayBufferSamples:
+    """
+    Every transition of the memory with its n-step return, as SB3's ``NStepReplayBuffer`` samples them: from step
+    ``t`` of an env, ``r_t + gamma r_(t+1) + ... + gamma^(k-1) r_(t+k-1)``, the state after step ``t+k-1`` and
+    ``discounts`` ``gamma^k``, where ``k`` is ``n_steps`` or less when the env's episode ends first (a termination then
+    bootstraps on 0, a truncation on the state it left) or the memory's newest step comes first (bootstrapped on).
+
+    :param buffer: NFQ's memory
+    :param vec_normalize_env: normalises observations and rewards for the fit, as SB3's ``sample`` does
+    :param n_steps: steps per return, more than 1
+    :param gamma: the discount factor
+    :return: the transitions in the order of :func:`stored_transitions` (the next observations are copies)
+    """
+    n_rows = buffer.buffer_size if buffer.full else buffer.pos
+    steps = np.arange(n_steps)
+    window = (np.arange(n_rows)[:, None] + steps) % n_rows  # (rows, n_steps): a step's next steps, in its env
+    stops = buffer.dones[:n_rows].astype(bool)
+    stops[(buffer.pos - 1) % n_rows] = True  # the newest step: past it lie older steps (or nothing yet)
+    ends = stops[window]  # (rows, n_steps, n_envs)
+    last = np.where(ends.any(axis=1), ends.argmax(axis=1), n_steps - 1)  # (rows, n_envs): k - 1
+    within = steps[None, :, None] <= last[:, None, :]
+    rewards = buffer._normalize_reward(buffer.rewards[:n_rows], vec_normalize_env)
+    returns = (rewards[window] * (gamma**steps)[None, :, None] * within).sum(axis=1).astype(np.float32)
+    rows, envs = (np.arange(n_rows)[:, None] + last) % n_rows, np.arange(buffer.n_envs)[None, :]
+    terminated = buffer.dones[rows, envs] * (1 - buffer.timeouts[rows, envs])
+
+    def next_obs(obs: np.ndarray) -> np.ndarray:
+        return obs[rows, envs].reshape(n_rows * buffer.n_envs, *obs.shape[2:])
+
+    successors = buffer.next_observations
+    if isinstance(successors, dict):
+        raw = {key: next_obs(value) for key, value in successors.items()}
+        normalized: Any = buffer._normalize_obs(raw, vec_normalize_env)
+        next_observations: Any = {key: buffer.to_torch(value) for key, value in normalized.items()}
+    else:
+        next_observations = buffer.to_torch(buffer._normalize_obs(next_obs(successors), vec_normalize_env))  # type: ignore[arg-type]
+    one_step = stored_transitions(buffer, vec_normalize_env)
+    return one_step._replace(
+        next_observations=next_observations,
+        dones=buffer.to_torch(terminated.reshape(-1, 1)),
+        rewards=buffer.to_torch(returns.reshape(-1, 1)),
+        discounts=buffer.to_torch((gamma ** (last + 1)).astype(np.float32).reshape(-1, 1)),
     )

@@ -92,6 +92,9 @@ class NFQ(OffPolicyAlgorithm):
         memory holding more has each iteration cover that many of its transitions, drawn at random (a memory larger
         than one iteration's fit, as DQN's replay buffer is larger than its gradient steps cover)
     :param gamma: The discount factor, in [0, 1] (the book's CartPole code uses 1.0)
+    :param n_steps: 1 (textbook): one-step TD targets. More (SB3 DQN's n-step returns): ``r_t + gamma r_(t+1) + ... +
+        gamma^(n-1) r_(t+n-1) + gamma^n max_a' Q(s_(t+n), a')``, cut short where the episode ends or at the memory's
+        newest step (:func:`~sb3_nfq.memory.n_step_transitions`); online learning only
     :param loss: Regression loss between ``Q(s, a)`` and the TD targets: ``"mse"`` (textbook) or ``"huber"``
     :param huber_delta: With ``loss="huber"``, the TD error where the loss turns linear (1.0: SB3 DQN's loss)
     :param exploration_fraction: Fraction of the training period over which epsilon goes linearly from its initial
@@ -145,6 +148,7 @@ class NFQ(OffPolicyAlgorithm):
         fit_epochs: int = 1,
         iteration_transitions: int | None = None,
         gamma: float = 1.0,
+        n_steps: int = 1,
         loss: LossName = "mse",
         huber_delta: float = 1.0,
         exploration_fraction: float = DEFAULT_EXPLORATION_FRACTION,
@@ -184,6 +188,7 @@ class NFQ(OffPolicyAlgorithm):
             supported_action_spaces=None,  # checked in _setup_model, with a clearer error than SB3's assert
             support_multi_env=True,
         )
+        self.n_steps = n_steps
         self.loss = loss
         self.huber_delta = huber_delta
         self.memory = memory
@@ -232,7 +237,11 @@ class NFQ(OffPolicyAlgorithm):
                 self.device,
             )
             self.replay_buffer_class = type(self.replay_buffer)
+        # SB3 sets up n-step returns in its own NStepReplayBuffer and warns that a given buffer class has none: NFQ
+        # computes them from its memory each round (stored_transitions), so SB3's setup sees n_steps=1.
+        n_steps, self.n_steps = self.n_steps, 1
         super()._setup_model()
+        self.n_steps = n_steps
         self.q_net = self.policy.q_net
         # Rprop needs a round's fit in full batches, which only a fresh memory of step rounds bounds.
         fit_size = rounds.fresh_round_transitions(self.train_freq, self.n_envs, self.memory)
@@ -353,9 +362,17 @@ class NFQ(OffPolicyAlgorithm):
                 "NFQ's memory is empty: there is nothing to fit. Collect transitions with learn(), load them with "
                 "load_replay_buffer(), or fit a dataset with fit_offline()."
             )
-        self._fit(self._stored_transitions(), self.replay_buffer.n_envs, gradient_steps, batch_size)
+        rewards = None if self.n_steps == 1 else stored_transitions(self.replay_buffer, self._vec_normalize_env).rewards
+        self._fit(self._stored_transitions(), self.replay_buffer.n_envs, gradient_steps, batch_size, rewards)
 
-    def _fit(self, batch: ReplayBufferSamples, n_envs: int, gradient_steps: int, batch_size: int | None) -> None:
+    def _fit(
+        self,
+        batch: ReplayBufferSamples,
+        n_envs: int,
+        gradient_steps: int,
+        batch_size: int | None,
+        rewards: th.Tensor | None = None,
+    ) -> None:
         """
         Fit the Q-network on ``batch`` (a round's memory, or a dataset) by ``gradient_steps`` fitted iterations.
 
@@ -363,6 +380,7 @@ class NFQ(OffPolicyAlgorithm):
         :param n_envs: how many envs the rows interleave (a transition's next state is ``n_envs`` rows on)
         :param gradient_steps: Number of fitted iterations
         :param batch_size: ``None``: one full-batch step per epoch; else shuffled mini-batches of this size
+        :param rewards: the one-step rewards that bound the Q-values (default: ``batch``'s, one-step transitions)
         """
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
@@ -394,7 +412,7 @@ class NFQ(OffPolicyAlgorithm):
                     losses.append(loss_value)
                     q_abs_max = th.maximum(q_abs_max, q_values.detach().abs().max())
 
-        exceeded = check_q_values_bounded(self, q_abs_max.item(), batch.rewards)
+        exceeded = check_q_values_bounded(self, q_abs_max.item(), batch.rewards if rewards is None else rewards)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/n_rounds", self._n_rounds, exclude="tensorboard")
         self.logger.record("train/batch_transitions", n_transitions)
@@ -435,6 +453,11 @@ class NFQ(OffPolicyAlgorithm):
         :return: the fitted model
         """
         dataset.check_spaces(self.observation_space, self.action_space)
+        if self.n_steps != 1:
+            raise ValueError(
+                f"fit_offline fits one-step targets, but this model has n_steps={self.n_steps}: a dataset's "
+                "transitions need not follow each other. Create the model for the dataset with n_steps=1."
+            )
         iterations = self.gradient_steps if iterations is None else iterations
         if not is_positive_int(iterations):
             raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
@@ -453,8 +476,8 @@ class NFQ(OffPolicyAlgorithm):
         return self
 
     def _stored_transitions(self) -> ReplayBufferSamples:
-        """:return: every transition in the memory, as :func:`~sb3_nfq.memory.stored_transitions` gives them"""
-        return stored_transitions(self.replay_buffer, self._vec_normalize_env)
+        """:return: every transition in the memory as a round fits them (:func:`~sb3_nfq.memory.stored_transitions`)"""
+        return stored_transitions(self.replay_buffer, self._vec_normalize_env, self.n_steps, self.gamma)
 
     def _on_step(self) -> None:
         """Update the exploration rate; called by ``collect_rollouts()`` after each environment step."""

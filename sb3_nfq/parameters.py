@@ -46,9 +46,6 @@ DQN_ONLY_PARAMETERS = {
     "optimize_memory_usage": "NFQ's memory keeps next observations explicitly; bound it with buffer_size instead",
     "replay_buffer_class": "NFQ builds its own memory: choose memory='fresh' (textbook) or 'growing', and buffer_size",
     "replay_buffer_kwargs": "NFQ builds its own memory: choose memory='fresh' (textbook) or 'growing', and buffer_size",
-    "n_steps": (
-        "NFQ's TD targets are one-step, r + gamma * max_a' Q(s', a') (what DQN's default n_steps=1 does): drop n_steps"
-    ),
     "action_noise": "NFQ acts on Discrete actions, epsilon-greedy (exploration_initial_eps, exploration_final_eps)",
 }
 
@@ -152,6 +149,7 @@ def check_hyperparameters(
     fit_epochs: int,
     iteration_transitions: int | None,
     gamma: float,
+    n_steps: int,
     loss: str,
     huber_delta: float,
     exploration_fraction: float,
@@ -171,6 +169,7 @@ def check_hyperparameters(
     for name, value in (
         ("gradient_steps", gradient_steps),
         ("fit_epochs", fit_epochs),
+        ("n_steps", n_steps),
         ("batch_size", batch_size),
         ("buffer_size", buffer_size),
         ("iteration_transitions", iteration_transitions),

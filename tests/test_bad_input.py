@@ -29,6 +29,8 @@ from tests.envs import NaNRewardAfter
         ({"gradient_steps": -1}, "gradient_steps must be a positive integer"),
         ({"gradient_steps": True}, "gradient_steps must be a positive integer, got True"),
         ({"batch_size": 0}, "batch_size must be a positive integer"),
+        ({"n_steps": 0}, "n_steps must be a positive integer, got 0"),
+        ({"n_steps": 2.5}, "n_steps must be a positive integer, got 2.5"),
         ({"buffer_size": -1}, "buffer_size must be a positive integer"),
         ({"gamma": 1.5}, r"gamma must be in \[0, 1\]"),
         ({"gamma": -0.1}, r"gamma must be in \[0, 1\]"),
@@ -69,8 +71,6 @@ def test_bad_hyperparameters_are_rejected_at_construction(kwargs: dict[str, Any]
         ("tau", 0.005, "no target network"),
         ("optimize_memory_usage", True, "buffer_size"),
         ("replay_buffer_class", None, "memory='fresh'"),
-        ("n_steps", 3, "one-step"),
-        ("n_steps", 1, "one-step.*drop n_steps"),
     ],
 )
 def test_dqn_parameters_get_a_type_error_saying_what_nfq_does_instead(name: str, value: Any, instead: str) -> None:

@@ -170,6 +170,8 @@ def test_a_dataset_that_does_not_fit_the_model_is_rejected() -> None:
         NFQ("MlpPolicy", "CartPole-v1").fit_offline(dataset, iterations=0)
     with pytest.raises(ValueError, match="iterations must be a positive integer, got True"):
         NFQ("MlpPolicy", "CartPole-v1").fit_offline(dataset, iterations=True)
+    with pytest.raises(ValueError, match="fit_offline fits one-step targets, but this model has n_steps=3"):
+        NFQ("MlpPolicy", "CartPole-v1", n_steps=3).fit_offline(dataset)
 
 
 def test_rprop_offline_with_minibatches_is_refused() -> None:

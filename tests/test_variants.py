@@ -1,6 +1,6 @@
 """
-Beyond the book: the growing memory, fixed targets per iteration (classic FQI), Rprop, and random actions repeated
-over several steps (temporally-extended epsilon-greedy).
+Beyond the book: the growing memory, fixed targets per iteration (classic FQI), Rprop, random actions repeated
+over several steps (temporally-extended epsilon-greedy), and n-step returns.
 """
 
 import itertools
@@ -18,6 +18,8 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
 from sb3_nfq import NFQ
+from sb3_nfq.fitting import take, td_targets
+from sb3_nfq.memory import stored_transitions
 from sb3_nfq.rounds import fresh_round_transitions, round_length, round_size
 from tests.conftest import TransitionRecorder, record_fitting
 
@@ -453,3 +455,62 @@ def test_repeated_exploration_is_kept_by_save_and_load_and_a_loaded_model_collec
     pairs = [(a, b) for actions in recorder.episodes for a, b in itertools.pairwise(actions)]
     # One random action a step repeats the last one half the time; Zeta(2) durations, about 4 times in 5.
     assert np.mean([a == b for a, b in pairs]) > 0.65
+
+
+# --- n-step returns (n_steps) --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("n_envs", "buffer_size"), [(1, None), (2, 300)])
+def test_n_step_transitions_sum_the_next_rewards_until_an_episode_ends_or_the_newest_step(
+    n_envs: int, buffer_size: int | None
+) -> None:
+    env = make_vec_env("CartPole-v1", n_envs=n_envs, seed=0, env_kwargs={"max_episode_steps": 20})
+    growing: dict[str, Any] = {"memory": "growing", "buffer_size": buffer_size, "train_freq": 50}
+    model = NFQ(
+        "MlpPolicy", env, gamma=0.9, n_steps=3, exploration_initial_eps=1.0, exploration_final_eps=1.0, **growing
+    )
+    model.learn(700)
+    memory, gamma = model.replay_buffer, 0.9
+    assert memory.full == (buffer_size is not None) and memory.pos > 0  # a wrapped memory: its newest row is inside
+    assert memory.timeouts.any() and (memory.dones * (1 - memory.timeouts)).any()  # truncations and terminations
+    data = model._stored_transitions()
+    n_rows = memory.buffer_size if memory.full else memory.pos
+    newest = memory.pos - 1
+    for row, env_index in itertools.product(range(n_rows), range(n_envs)):
+        step, total, discount = row, 0.0, 1.0
+        for k in range(3):  # by hand: stop after an episode's last step or the memory's newest one
+            total += discount * memory.rewards[step, env_index]
+            discount *= gamma
+            if memory.dones[step, env_index] or step == newest or k == 2:
+                break
+            step = (step + 1) % n_rows
+        i = row * n_envs + env_index
+        assert data.rewards[i, 0].item() == pytest.approx(total, rel=1e-5)
+        assert data.discounts is not None and data.discounts[i, 0].item() == pytest.approx(discount, rel=1e-5)
+        np.testing.assert_array_equal(data.next_observations[i].numpy(), memory.next_observations[step, env_index])
+        terminated = memory.dones[step, env_index] * (1 - memory.timeouts[step, env_index])
+        assert data.dones[i, 0].item() == terminated
+    one_step = stored_transitions(memory)
+    assert one_step.discounts is None
+    th.testing.assert_close(data.observations, one_step.observations)
+
+
+def test_n_step_targets_bootstrap_with_each_transitions_own_discount() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, gamma=0.9, n_steps=3, seed=0)
+    model.learn(128)
+    data, rows = model._stored_transitions(), th.arange(0, 128, 5)
+    assert data.discounts is not None and len(set(data.discounts.flatten().tolist())) > 1  # episode ends cut some
+    part = take(data, rows)
+    with th.no_grad():
+        next_q = model.q_net(part.next_observations).max(dim=1).values.reshape(-1, 1)
+    expected = part.rewards + (1 - part.dones) * data.discounts[rows] * next_q
+    th.testing.assert_close(td_targets(model.q_net, part, model.gamma), expected)
+
+
+def test_n_steps_is_kept_by_save_and_load_without_sb3s_n_step_buffer_warning(tmp_path: Path) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=64, n_steps=3)
+        model.save(tmp_path / "model.zip")
+        loaded = NFQ.load(tmp_path / "model.zip")
+    assert loaded.n_steps == 3 and type(loaded.replay_buffer) is type(model.replay_buffer)

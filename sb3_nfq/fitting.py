@@ -245,9 +245,11 @@ def shared_successor_states(
     :param n_envs: how many envs the rows interleave
     :param batch_size: NFQ's ``batch_size``
     :return: :func:`states_and_successors` where ``Q(s', .)`` can be read off the ``Q(s, .)`` pass: full-batch steps
-        whose pass covers the whole memory at once, with a network that computes the same in training and eval mode;
-        else ``None``
+        whose pass covers the whole memory at once, with a network that computes the same in training and eval mode,
+        on one-step transitions (an n-step ``s'`` is seldom the next row's ``s``); else ``None``
     """
+    if batch.discounts is not None:
+        return None
     n_transitions = len(batch.rewards)
     full_batch = batch_size is None or batch_size >= n_transitions
     one_pass = n_transitions <= rows_per_chunk(batch.observations)

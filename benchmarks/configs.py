@@ -1,8 +1,7 @@
 """
 What the benchmark runs: the envs (threshold, evaluation period), the seeds, and the algorithm configs (NFQ: the
 zoo-format files of ``benchmarks/hyperparams/``, never edited once run; the peers: the installed ``rl_zoo3``'s DQN
-and QR-DQN entries; a ``-keep-best`` or ``-keep-best-<n>`` name runs its base config with
-``sb3_nfq.KeepBestCallback``).
+and QR-DQN entries; a ``-keep-best`` name runs its base config with ``sb3_nfq.KeepBestCallback``).
 """
 
 import importlib.metadata
@@ -69,9 +68,9 @@ ONE_CONFIG = SHIPPED["default"]
 REFERENCE = "reference-nfq"
 #: The peers: name -> (kind, the rl_zoo3 hyperparameters file).
 ZOO_PEERS: dict[str, tuple[AlgoKind, str]] = {"dqn-zoo": ("dqn", "dqn.yml"), "qrdqn-zoo": ("qrdqn", "qrdqn.yml")}
-#: Name suffixes that run the config before them with sb3_nfq.KeepBestCallback, and the ``keep_best`` value they
-#: record: ``True``, the callback's defaults (as the runs before ``n_episodes`` recorded), or ``n_episodes``.
-KEEP_BEST_SUFFIXES: dict[str, bool | int] = {"-keep-best": True, "-keep-best-10": 10}
+#: The name suffix that runs the config before it with sb3_nfq.KeepBestCallback's defaults (recorded as
+#: ``keep_best: true``).
+KEEP_BEST_SUFFIX = "-keep-best"
 #: Keys of the Zoo's format that change the env or the training loop, which the runner does not apply (no config sets
 #: one on the four envs): an entry that sets one is refused rather than half-applied.
 NOT_APPLIED = ("normalize", "env_wrapper", "vec_env_wrapper", "frame_stack", "callback", "env_kwargs", "monitor_kwargs")
@@ -101,15 +100,15 @@ class ResolvedConfig:
 def algorithm_names() -> list[str]:
     """:return: every algorithm config the runner knows, in report order"""
     nfq, peers = (
-        [name + suffix for name in names for suffix in ("", *KEEP_BEST_SUFFIXES)]
+        [name + suffix for name in names for suffix in ("", KEEP_BEST_SUFFIX)]
         for names in (NFQ_CONFIG_NAMES, ZOO_PEERS)
     )
     return [*nfq, REFERENCE, *peers]
 
 
 def keep_best_suffix(algo: str) -> str:
-    """:return: the name's suffix of :data:`KEEP_BEST_SUFFIXES`, or ``""``"""
-    return next((suffix for suffix in KEEP_BEST_SUFFIXES if algo.endswith(suffix)), "")
+    """:return: :data:`KEEP_BEST_SUFFIX` if the name ends with it, else ``""``"""
+    return KEEP_BEST_SUFFIX if algo.endswith(KEEP_BEST_SUFFIX) else ""
 
 
 def peers_of(algo: str) -> list[str]:
@@ -158,7 +157,7 @@ def resolve(algo: str, env_id: str) -> ResolvedConfig:
     else:
         raise KeyError(f"unknown algorithm config {algo!r}; known: {algorithm_names()}")
     if suffix:
-        kwargs["keep_best"] = KEEP_BEST_SUFFIXES[suffix]
+        kwargs["keep_best"] = True
     if present := [key for key in NOT_APPLIED if key in kwargs]:
         raise NotImplementedError(f"{source}'s entry for {env_id} sets {present}, which the runner does not apply")
     budget = int(float(kwargs.pop("n_timesteps")))

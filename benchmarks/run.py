@@ -323,7 +323,7 @@ def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
     """
     :param job: an NFQ, DQN or QR-DQN job
     :return: its model on its training envs and the callbacks its config asks for (``keep_best``:
-        ``sb3_nfq.KeepBestCallback``, with ``n_episodes`` when it is a number)
+        ``sb3_nfq.KeepBestCallback`` with its defaults)
     """
     from sb3_contrib import QRDQN
     from stable_baselines3 import DQN
@@ -332,8 +332,7 @@ def build_sb3_model(job: Job) -> tuple[Any, list[BaseCallback]]:
 
     kwargs = dict(job.config.kwargs)
     n_envs, policy = int(kwargs.pop("n_envs", 1)), kwargs.pop("policy", "MlpPolicy")
-    keep_best = kwargs.pop("keep_best", False)  # True (-keep-best): n_episodes 1, the callback's default
-    callbacks: list[BaseCallback] = [KeepBestCallback(n_episodes=int(keep_best))] if keep_best else []
+    callbacks: list[BaseCallback] = [KeepBestCallback()] if kwargs.pop("keep_best", False) else []
     algorithm_class: Any = {"nfq": NFQ, "dqn": DQN, "qrdqn": QRDQN}[job.config.kind]
     env = make_env(job.config.env_id, n_envs, job.seed)
     return algorithm_class(policy, env, seed=job.seed, device="cpu", verbose=0, **zoo_to_kwargs(kwargs)), callbacks

@@ -97,10 +97,7 @@ def test_configs_resolve_every_algorithm_on_every_env_and_refuse_unknown_names()
         for env_id in configs.ENVS:
             config = configs.resolve(algo, env_id)
             assert config.budget > 0 and "n_timesteps" not in config.kwargs
-            assert (
-                config.kwargs.get("keep_best", False)
-                == {"": False, "-keep-best": True, "-keep-best-10": 10}[configs.keep_best_suffix(algo)]
-            )
+            assert config.kwargs.get("keep_best", False) == algo.endswith("-keep-best")
     assert configs.resolve("reference-nfq", "CartPole-v1").budget == configs.resolve("nfq-book", "CartPole-v1").budget
     assert "n_quantiles" in configs.resolve("qrdqn-zoo", "Acrobot-v1").kwargs["policy_kwargs"]
     assert {algo.removesuffix(configs.keep_best_suffix(algo)) for algo in configs.SHIPPED.values()} <= set(
@@ -203,9 +200,7 @@ def test_keep_best_configs_run_with_the_keep_best_callback() -> None:
         _, callbacks = run.build_sb3_model(_job(algo))
         assert [type(callback) for callback in callbacks] == [sb3_nfq.KeepBestCallback]
     assert run.build_sb3_model(_job("dqn-zoo"))[1] == []
-    (windowed,) = run.build_sb3_model(_job("dqn-zoo-keep-best-10"))[1]
-    assert isinstance(windowed, sb3_nfq.KeepBestCallback) and windowed.n_episodes == 10
-    assert configs.peers_of("nfq-book-keep-best-10") == ["dqn-zoo-keep-best-10", "qrdqn-zoo-keep-best-10"]
+    assert configs.peers_of("nfq-book-keep-best") == ["dqn-zoo-keep-best", "qrdqn-zoo-keep-best"]
     record = run.run_job(_job("nfq-front-loaded-batch-128-keep-best", budget=1500))
     assert record["config"]["keep_best"] is True and record["curve"][-1][0] == record["steps_trained"]
 

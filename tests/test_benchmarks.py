@@ -260,7 +260,7 @@ def held_out(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
 def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_seeds(
     recorded: list[dict[str, Any]], held_out: list[dict[str, Any]], tmp_path: Path
 ) -> None:
-    book = run.read_results(RESULTS / "book_protocol.jsonl")
+    book = report.book_cells(run.read_results(RESULTS / "book_protocol.jsonl"))
     text = report.build_report(recorded, tmp_path, "runs.jsonl", "test", book, held_out)
     targets = {line.split("|")[1].strip(): line.split("|")[2:4] for line in text.splitlines() if "| **" in line}
     fidelity = "CartPole-v1, the book's criterion: nfq-book / reference-nfq median steps to solve within 0.75 to 1.25"
@@ -321,7 +321,7 @@ def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_
 def test_readme_table_shows_the_held_out_rows_their_budgets_and_how_many_seeds_have_run(
     held_out: list[dict[str, Any]],
 ) -> None:
-    book = run.read_results(RESULTS / "book_protocol.jsonl")
+    book = report.book_cells(run.read_results(RESULTS / "book_protocol.jsonl"))
     rows = {row.split("|")[1].strip(): row for row in report.readme_table(held_out, book).splitlines()[2:]}
     all_seeds, book_row = rows["MountainCar-v0"], rows["CartPole-v1, the book's criterion"]
     assert "5-14 (held out)" in all_seeds and "40,448 vs 92,160 vs 99,328" in all_seeds

@@ -3,7 +3,7 @@ Benchmark runner: train (algorithm config x env x seed) jobs and append one JSON
 
     python -m benchmarks.run [--algos nfq-book reference-nfq dqn-zoo] [--envs CartPole-v1 ...] [--seeds 0-4]
         [--budget N] [--eval-every N] [--stop-at-solve] [--protocol rounds|book] [--workers 2]
-        [--results benchmarks/results/runs.jsonl] [--ray-address local|auto|ray://host:10001] [--dry-run]
+        [--results benchmarks/results/runs.jsonl] [--ray-address local|auto|ray://host:10001]
 
 The criterion, the timing and the record fields: benchmarks/README.md ("What is measured").
 """
@@ -22,7 +22,6 @@ import shlex
 import socket
 import subprocess
 import sys
-import threading
 import time
 import traceback
 from collections.abc import Iterable, Sequence
@@ -252,8 +251,7 @@ class Evaluations(BaseCallback):
     The greedy evaluations of one job: ``n_eval_episodes`` episodes with ``evaluate_policy`` on as many envs, episode
     ``i`` from ``reset(seed=seed_base + i)``, at the first call of :meth:`maybe_evaluate` at or after each multiple of
     ``eval_every``. As an SB3 callback, it evaluates at rollout starts (for NFQ: right after the previous round's fit;
-    SB3's ``EvalCallback`` evaluates inside a round) and at the end of training, and counts the training episodes'
-    ends.
+    SB3's ``EvalCallback`` evaluates inside a round) and at the end of training.
 
     :param job: the job (env, episodes per evaluation, threshold, evaluation period, whether to stop at the solve)
     :param seed_base: the learning curve's first episode seed
@@ -263,14 +261,12 @@ class Evaluations(BaseCallback):
         super().__init__()
         self.job, self.seed_base, self.env = job, seed_base, make_env(job.config.env_id, job.n_eval_episodes)
         self.curve: list[list[float]] = []
-        #: [steps, training episodes ended since the previous evaluation, how many of them by termination]
-        self.episode_ends: list[list[int]] = []
         self.steps_to_solve: int | None = None
         #: Training seconds from ``started`` (training's start) to the evaluation that solved, evaluations left out.
         self.seconds_to_solve: float | None = None
         self.started = time.perf_counter()
         self.eval_seconds, self.stopped, self.keep_training = 0.0, False, True
-        self._next_eval = self._ended = self._terminated = 0
+        self._next_eval = 0
 
     def returns(self, model: Any, seed_base: int) -> np.ndarray:
         """:return: the returns of ``model``'s greedy episodes, the first from ``reset(seed=seed_base)``"""
@@ -287,8 +283,6 @@ class Evaluations(BaseCallback):
             self.steps_to_solve, self.seconds_to_solve = steps, start - self.started - self.eval_seconds
         self.eval_seconds += time.perf_counter() - start
         self.curve.append([steps, mean])
-        self.episode_ends.append([steps, self._ended, self._terminated])
-        self._ended = self._terminated = 0
         self._next_eval = (steps // self.job.eval_every + 1) * self.job.eval_every
 
     def maybe_evaluate(self, steps: int, model: Any) -> bool:
@@ -307,9 +301,6 @@ class Evaluations(BaseCallback):
         self.keep_training = self.maybe_evaluate(self.num_timesteps, self.model)
 
     def _on_step(self) -> bool:
-        for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
-            self._ended += int(done)
-            self._terminated += int(done and not info.get("TimeLimit.truncated", False))
         return self.keep_training
 
     def _on_training_end(self) -> None:
@@ -389,7 +380,6 @@ def run_job(job: Job) -> dict[str, Any]:
         "steps_to_solve": evaluations.steps_to_solve,
         "train_seconds_to_solve": None if solve_seconds is None else round(solve_seconds, 3),
         "stopped_at_solve": evaluations.stopped,
-        "train_episode_ends": evaluations.episode_ends if config.kind != "reference" else None,
     }
     eval_seconds, curve = evaluations.eval_seconds, evaluations.curve
     if book is not None:
@@ -443,22 +433,6 @@ def run_job(job: Job) -> dict[str, Any]:
 # --- execution --------------------------------------------------------------------------------------------------
 
 
-def exit_with_parent(parent: int) -> None:
-    """
-    Pool-worker initializer: end this worker once the runner is gone (a runner killed by a signal would leave its
-    workers training, competing for the cores with the next command's jobs).
-
-    :param parent: the runner's pid (passed in: the runner may be gone before a starting worker has imported)
-    """
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(1.0)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True).start()
-
-
 def submit(jobs: Sequence[Job], workers: int, ray_address: str | None, stack: contextlib.ExitStack) -> dict[Any, Job]:
     """
     :param jobs: the jobs
@@ -485,17 +459,9 @@ def submit(jobs: Sequence[Job], workers: int, ray_address: str | None, stack: co
         pool: concurrent.futures.Executor = concurrent.futures.ThreadPoolExecutor(1)
     else:  # a fresh process per job: no state leaks between jobs
         context = multiprocessing.get_context("spawn")
-        pool = concurrent.futures.ProcessPoolExecutor(
-            workers, mp_context=context, initializer=exit_with_parent, initargs=(os.getpid(),), max_tasks_per_child=1
-        )
+        pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, max_tasks_per_child=1)
     stack.enter_context(pool)
     return {pool.submit(run_job, job): job for job in jobs}
-
-
-def done_keys(results: Path, jobs: Sequence[Job], rerun: bool = False) -> set[Key]:
-    """:return: the keys of ``jobs`` the file holds (with ``rerun``: only those recorded by the jobs' own command)"""
-    commands = {job.command for job in jobs}
-    return {result_key(record) for record in read_results(results) if not rerun or record["command"] in commands}
 
 
 def run_jobs(
@@ -511,7 +477,8 @@ def run_jobs(
     :param rerun: skip only the jobs this same command line has recorded: to run a baseline side by side again
     :return: (jobs run, jobs skipped as already done, jobs failed)
     """
-    done = done_keys(results, jobs, rerun)
+    commands = {job.command for job in jobs}
+    done = {result_key(record) for record in read_results(results) if not rerun or record["command"] in commands}
     todo = [job for job in jobs if job.key not in done]
     if workers > usable_cores():
         print(f"warning: {workers} workers on {usable_cores()} cores would distort timings", file=sys.stderr)
@@ -567,7 +534,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--results", type=Path, help="JSON-lines file (default: runs.jsonl or book_protocol.jsonl)")
     parser.add_argument("--ray-address", help="run the jobs as Ray tasks: 'local', 'auto' or a cluster address")
     parser.add_argument("--rerun", action="store_true", help="skip only the jobs this exact command has recorded")
-    parser.add_argument("--dry-run", action="store_true", help="list the jobs to run and exit")
     args = parser.parse_args(argv)
     if args.workers < 0:
         parser.error(f"--workers must be >= 0, got {args.workers}")
@@ -577,14 +543,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.algos, args.envs, parse_seeds(args.seeds), args.budget, args.eval_every,
         n_eval_episodes=args.eval_episodes, stop_at_solve=args.stop_at_solve, command=command, protocol=args.protocol,
     )  # fmt: skip
-    if args.dry_run:
-        done = done_keys(results, jobs, args.rerun)
-        for job in jobs:
-            algo, env_id, seed, budget, config_hash = job.key
-            print(
-                "done" if job.key in done else "todo", algo, env_id, f"seed={seed} budget={budget} config={config_hash}"
-            )
-        return 0
     print(f"machine: {machine_line()}; torch threads per job: 1")
     return 1 if run_jobs(jobs, results, args.workers, args.ray_address, args.rerun)[2] else 0
 

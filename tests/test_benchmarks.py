@@ -183,8 +183,6 @@ def test_a_job_evaluates_at_step_0_after_each_period_and_at_the_end(algo: str) -
     assert record["steps_trained"] >= 1500 and record["torch_threads"] == 1
     assert record["final_n_episodes"] == 5 and record["kind"] == configs.resolve(algo, "CartPole-v1").kind
     assert not record["solved"] and record["train_seconds_to_solve"] is None
-    ends = record["train_episode_ends"]
-    assert ends is None if algo == "reference-nfq" else [e[0] for e in ends] == [0, 1024, record["steps_trained"]]
     json.dumps(record)
 
 
@@ -205,9 +203,7 @@ def test_keep_best_configs_run_with_the_keep_best_callback() -> None:
     assert record["config"]["keep_best"] is True and record["curve"][-1][0] == record["steps_trained"]
 
 
-def test_runner_reads_seed_ranges_appends_resumes_and_lists_done_jobs(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_runner_reads_seed_ranges_appends_and_resumes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert run.parse_seeds(["0-2", "7", "5,1"]) == [0, 1, 2, 7, 5]
     argv = ["--algos", "reference-nfq", "--envs", "CartPole-v1", "--seeds", "0-1", "--budget", "1024"]
     argv += ["--eval-episodes", "2", "--workers", "0", "--results", str(tmp_path / "runs.jsonl")]
@@ -215,7 +211,6 @@ def test_runner_reads_seed_ranges_appends_resumes_and_lists_done_jobs(
     assert [record["seed"] for record in run.read_results(tmp_path / "runs.jsonl")] == [0, 1]
     assert run.main(argv) == 0 and len(run.read_results(tmp_path / "runs.jsonl")) == 2  # nothing run twice
     assert "2 already in" in capsys.readouterr().out
-    assert run.main([*argv, "--dry-run"]) == 0 and "done reference-nfq" in capsys.readouterr().out
 
 
 def test_recorded_commands_name_paths_inside_the_repository_relative_to_it(tmp_path: Path) -> None:

@@ -1,5 +1,5 @@
 """
-Turn the runner's JSON lines into ``benchmarks/results/README.md`` (tables, targets) and learning-curve PNGs.
+Turn the runner's JSON lines into ``benchmarks/results/README.md`` (tables, targets).
 
     python -m benchmarks.report [--results benchmarks/results/runs.jsonl] [--out-dir benchmarks/results]
 
@@ -367,52 +367,7 @@ def fidelity_target(cells: dict[str, Cell], fidelity: dict[str, Any]) -> tuple[s
     return claim, *steps_ratio(cells[BOOK_PAIR[0]], cells[BOOK_PAIR[1]], low, high)
 
 
-# --- curves, book protocol, README table -------------------------------------------------------------------------
-
-
-def plot_curves(env: str, cells: Sequence[Cell], path: Path, seed: int = 0) -> None:
-    """
-    One PNG: per cell, the mean greedy return over seeds (interpolated on a common step grid) with a 95% bootstrap
-    band, drawn while at least half of the cell's runs are still training; the threshold dashed.
-
-    :param env: env id (title)
-    :param cells: the env's cells
-    :param path: where to write the PNG
-    :param seed: bootstrap seed
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rng = np.random.default_rng(seed)
-    figure, axes = plt.subplots(figsize=(8, 4.5))
-    for cell in cells:
-        curves = [np.asarray(run["curve"], dtype=float) for run in cell.runs if run["curve"]]
-        if not curves:
-            continue
-        grid = np.linspace(0, max(curve[-1, 0] for curve in curves), 200)
-        values = np.full((len(curves), len(grid)), np.nan)
-        for row, curve in zip(values, curves, strict=True):
-            inside = grid <= curve[-1, 0]
-            row[inside] = np.interp(grid[inside], curve[:, 0], curve[:, 1])
-        keep = np.sum(~np.isnan(values), axis=0) >= len(curves) / 2
-        resamples = values[rng.integers(len(curves), size=(BOOTSTRAP_REPS // 4, len(curves)))][:, :, keep]
-        with warnings.catch_warnings():  # a resample may hold no run that reached a step: its mean is NaN
-            warnings.simplefilter("ignore", RuntimeWarning)
-            low, high = np.nanpercentile(np.nanmean(resamples, axis=1), [2.5, 97.5], axis=0)
-        (line,) = axes.plot(grid[keep], np.nanmean(values[:, keep], axis=0), label=f"{cell.label} (n={cell.n})")
-        axes.fill_between(grid[keep], low, high, color=line.get_color(), alpha=0.2)
-    threshold = cells[0].runs[0]["threshold"]
-    axes.axhline(threshold, color="black", linestyle="--", linewidth=1, label=f"threshold {threshold:g}")
-    axes.set(title=f"{env}: mean greedy return over seeds, 95% bootstrap CI", xlabel="environment steps")
-    axes.set_ylabel("greedy return (mean of 100 episodes)")
-    axes.legend(fontsize="small")
-    axes.grid(alpha=0.3)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
+# --- book protocol, README table -------------------------------------------------------------------------------
 
 
 def book_cells(records: Sequence[dict[str, Any]]) -> dict[str, Cell]:
@@ -551,7 +506,7 @@ def build_report(
     held_out: Sequence[dict[str, Any]],
 ) -> str:
     """
-    Write ``README.md`` and the learning-curve PNGs into ``out_dir``.
+    Write ``README.md`` into ``out_dir``.
 
     :param records: result lines of the development seeds
     :param out_dir: output folder
@@ -613,9 +568,6 @@ def build_report(
             periods = ", ".join(str(e) for e in _unique([run for cell in cells for run in cell.runs], "eval_every"))
             lines += [f"## {env}, {title} (threshold {cells[0].runs[0]['threshold']:g}, evaluated every {periods})"]
             lines += ["", env_table(cells), ""]
-            if by_env is held_out_cells or env not in held_out_cells:
-                plot_curves(env, cells, out_dir / f"curves_{env}.png")
-                lines += [f"![{env} learning curves, {title}](curves_{env}.png)", ""]
     text = "\n".join([*lines, *book_protocol_lines(book)])
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "README.md").write_text(text)
@@ -629,7 +581,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="the runner's JSON-lines file")
     parser.add_argument("--held-out-results", type=Path, default=DEFAULT_HELD_OUT, help="the held-out seeds' file")
     parser.add_argument("--book-results", type=Path, default=DEFAULT_BOOK_RESULTS, help="its --protocol book file")
-    parser.add_argument("--out-dir", type=Path, help="where README.md and the PNGs go (default: the results' folder)")
+    parser.add_argument("--out-dir", type=Path, help="where README.md goes (default: the results' folder)")
     args = parser.parse_args(argv)
     records, book = read_results(args.results), book_cells(read_results(args.book_results))
     held_out = [run for run in read_results(args.held_out_results) if int(run["seed"]) in configs.HELD_OUT_SEEDS]

@@ -42,8 +42,8 @@ def test_the_entries_are_the_configs_measured_for_them() -> None:
     assert (cartpole["round_fraction"], cartpole["round_fraction_offset"], cartpole["train_freq"]) == (0.4, 4000, 128)
     assert cartpole["batch_size"] == 128
     assert cartpole["callback"] == "sb3_nfq.KeepBestCallback" and "keep_best" not in cartpole
-    # LunarLander: nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3; MountainCar's has one-step returns and adds repeated
-    # random actions and sampled iterations
+    # LunarLander: nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3; MountainCar's adds repeated random actions and
+    # sampled iterations
     lunar = read_entry("LunarLander-v3")
     assert (lunar["loss"], lunar["huber_delta"], lunar["learning_rate"], lunar["n_steps"]) == (
         "huber",
@@ -52,12 +52,12 @@ def test_the_entries_are_the_configs_measured_for_them() -> None:
         3,
     )
     repeats_and_samples = {"exploration_repeat_mu": 2.0, "iteration_transitions": 10000}
-    one_step = {key: value for key, value in lunar.items() if key != "n_steps"}
-    assert {**mountain_car, "n_timesteps": 0} == {**one_step, "n_timesteps": 0, **repeats_and_samples}
+    assert {**mountain_car, "n_timesteps": 0} == {**lunar, "n_timesteps": 0, **repeats_and_samples}
     # Acrobot: nfq-front-loaded-batch-128-k12-keep-best, CartPole's entry with 12 fitted iterations per round
     assert {**read_entry("Acrobot-v1"), "n_timesteps": 0} == {**cartpole, "n_timesteps": 0, "gradient_steps": 12}
-    # the one config: MountainCar's entry with 3-step returns
-    assert {**default, "n_timesteps": 0} == {**mountain_car, "n_timesteps": 0, "n_steps": 3}
+    # the one config: MountainCar's entry, at its own budget
+    assert {**default, "n_timesteps": 0} == {**mountain_car, "n_timesteps": 0}
+    assert (default["n_timesteps"], mountain_car["n_timesteps"]) == (100_000, 120_000)
 
 
 @pytest.mark.parametrize("entry", [*BENCHMARK_ENVS, "default"])

@@ -267,6 +267,25 @@ def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: 
 
 
 @pytest.mark.slow  # the zoo in a subprocess
+@pytest.mark.parametrize("env_id", ["Acrobot-v1", "MountainCar-v0", "LunarLander-v3"])
+def test_train_trains_the_entry_of_each_other_benchmark_env(env_id: str, tmp_path: Path) -> None:
+    if env_id == "LunarLander-v3":
+        pytest.importorskip("Box2D")
+    _check(_zoo("train", "--env", env_id, "-n", "256", "--eval-freq", "-1", "--seed", "0", cwd=tmp_path))
+    run = tmp_path / "logs" / ALGO_NAME / f"{env_id}_1"
+    entry = _hyperparameter_file()[env_id]
+    assert dict(_read_yaml(run / env_id / "config.yml")) == entry
+    model = NFQ.load(run / f"{env_id}.zip")
+    assert model.num_timesteps == 256 and model.n_steps == entry.get("n_steps", 1)
+    assert isinstance(model.train_freq, TrainFreq)
+    assert (model.train_freq.frequency, model.gradient_steps, model.memory) == (
+        entry["train_freq"],
+        entry["gradient_steps"],
+        entry["memory"],
+    )
+
+
+@pytest.mark.slow  # the zoo in a subprocess
 def test_enjoy_runs_the_trained_agent(trained_run: Path) -> None:
     # No --algo and no -f: the launcher's defaults find the run under ./logs/nfq. More steps than CartPole's time
     # limit (500), so that an episode ends and its return is printed however well the agent balances.

@@ -232,6 +232,27 @@ def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     yield workdir
 
 
+def _assert_trains_the_entry(run: Path, env_id: str, steps: int) -> dict[str, Any]:
+    """
+    Check that a zoo training run of ``steps`` steps in ``run`` trained nfq.yml's entry for ``env_id``.
+
+    :return: the entry
+    """
+    entry = read_entry(env_id)
+    assert dict(_read_yaml(run / env_id / "config.yml")) == _hyperparameter_file()[env_id]
+    model = NFQ.load(run / f"{env_id}.zip")
+    assert model.num_timesteps == steps and isinstance(model.train_freq, TrainFreq)
+    assert (model.train_freq.frequency, model.gradient_steps, model.gamma, model.memory, model.n_steps) == (
+        entry["train_freq"],
+        entry["gradient_steps"],
+        entry["gamma"],
+        entry["memory"],
+        entry.get("n_steps", 1),
+    )
+    assert model.policy.net_arch == zoo_to_kwargs(entry)["policy_kwargs"]["net_arch"]
+    return entry
+
+
 @pytest.mark.slow  # the zoo in a subprocess
 def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: Path) -> None:
     run = trained_run / "logs" / ALGO_NAME / f"{ENV_ID}_1"
@@ -246,19 +267,7 @@ def test_train_uses_the_packaged_file_and_writes_a_model_nfq_loads(trained_run: 
 
     args = _read_yaml(run / ENV_ID / "args.yml")
     assert args["algo"] == ALGO_NAME and args["conf_file"] == str(DEFAULT_CONF_FILE)
-    assert dict(_read_yaml(run / ENV_ID / "config.yml")) == _hyperparameter_file()[ENV_ID]
-
-    model = NFQ.load(run / f"{ENV_ID}.zip")
-    assert model.num_timesteps == 2048
-    assert isinstance(model.train_freq, TrainFreq)
-    entry = read_entry(ENV_ID)
-    assert (model.train_freq.frequency, model.gradient_steps, model.gamma, model.memory) == (
-        entry["train_freq"],
-        entry["gradient_steps"],
-        entry["gamma"],
-        entry["memory"],
-    )
-    assert model.policy.net_arch == zoo_to_kwargs(entry)["policy_kwargs"]["net_arch"]
+    entry = _assert_trains_the_entry(run, ENV_ID, 2048)
     # The entry's callback key reached learn(): KeepBestCallback logs the best score
     assert entry["callback"] == "sb3_nfq.KeepBestCallback"
     assert "best_score" in (trained_run / "train_output.txt").read_text()
@@ -272,17 +281,7 @@ def test_train_trains_the_entry_of_each_other_benchmark_env(env_id: str, tmp_pat
     if env_id == "LunarLander-v3":
         pytest.importorskip("Box2D")
     _check(_zoo("train", "--env", env_id, "-n", "256", "--eval-freq", "-1", "--seed", "0", cwd=tmp_path))
-    run = tmp_path / "logs" / ALGO_NAME / f"{env_id}_1"
-    entry = _hyperparameter_file()[env_id]
-    assert dict(_read_yaml(run / env_id / "config.yml")) == entry
-    model = NFQ.load(run / f"{env_id}.zip")
-    assert model.num_timesteps == 256 and model.n_steps == entry.get("n_steps", 1)
-    assert isinstance(model.train_freq, TrainFreq)
-    assert (model.train_freq.frequency, model.gradient_steps, model.memory) == (
-        entry["train_freq"],
-        entry["gradient_steps"],
-        entry["memory"],
-    )
+    _assert_trains_the_entry(tmp_path / "logs" / ALGO_NAME / f"{env_id}_1", env_id, 256)
 
 
 @pytest.mark.slow  # the zoo in a subprocess

@@ -253,10 +253,10 @@ def held_out(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
 
 
 def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_seeds(
-    recorded: list[dict[str, Any]], held_out: list[dict[str, Any]], tmp_path: Path
+    recorded: list[dict[str, Any]], held_out: list[dict[str, Any]]
 ) -> None:
     book = report.book_cells(run.read_results(RESULTS / "book_protocol.jsonl"))
-    text = report.build_report(recorded, tmp_path, "runs.jsonl", "test", book, held_out)
+    text = report.build_report(recorded, book, held_out)
     targets = {line.split("|")[1].strip(): line.split("|")[2:4] for line in text.splitlines() if "| **" in line}
     fidelity = "CartPole-v1, the book's criterion: nfq-book / reference-nfq median steps to solve within 0.75 to 1.25"
     assert targets[fidelity][0].strip() == "**met**"

@@ -116,15 +116,6 @@ def peers_of(algo: str) -> list[str]:
     return [peer + keep_best_suffix(algo) for peer in ZOO_PEERS]
 
 
-def measured_names() -> list[str]:
-    """
-    :return: what the runner runs by default: every config without selection, and each shipped config that ends on its
-        best fit with its peers selected alike (:func:`algorithm_names` also has every other config's -keep-best twins)
-    """
-    alike = {name for algo in SHIPPED.values() if keep_best_suffix(algo) for name in (algo, *peers_of(algo))}
-    return [name for name in algorithm_names() if not keep_best_suffix(name) or name in alike]
-
-
 def zoo_file(name: str) -> Path:
     """:return: the installed rl_zoo3 package's ``hyperparams/<name>`` (found without importing rl_zoo3)"""
     spec = importlib.util.find_spec("rl_zoo3")

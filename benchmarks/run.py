@@ -1,7 +1,7 @@
 """
 Benchmark runner: train (algorithm config x env x seed) jobs and append one JSON line per finished job.
 
-    python -m benchmarks.run [--algos nfq-book reference-nfq dqn-zoo] [--envs CartPole-v1 ...] [--seeds 0-4]
+    python -m benchmarks.run --algos nfq-book reference-nfq dqn-zoo [--envs CartPole-v1 ...] [--seeds 0-4]
         [--budget N] [--eval-every N] [--stop-at-solve] [--protocol rounds|book] [--workers 2]
         [--results benchmarks/results/runs.jsonl] [--ray-address local|auto|ray://host:10001]
 
@@ -522,7 +522,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     names, seeds = configs.algorithm_names(), f"{configs.SEEDS[0]}-{configs.SEEDS[-1]}"
-    parser.add_argument("--algos", nargs="+", default=configs.measured_names(), choices=names)
+    parser.add_argument("--algos", nargs="+", required=True, choices=names)
     parser.add_argument("--envs", nargs="+", default=list(configs.ENVS), choices=list(configs.ENVS))
     parser.add_argument("--seeds", nargs="+", default=[seeds], help=f"seeds or ranges (default {seeds})")
     parser.add_argument("--budget", type=int, help="env-step budget of every job (default: per config and env)")

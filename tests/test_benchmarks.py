@@ -273,8 +273,9 @@ def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_se
 
 
 def test_a_median_between_a_solved_and_an_unsolved_run_is_a_lower_bound_in_steps_and_seconds() -> None:
-    # MountainCar-v0's held-out NFQ runs: 5 of 10 solved, so the median interpolates between the 5th solved run
-    # (103,424) and an unsolved one (120,000 steps trained): it is only a lower bound, and so is its ratio.
+    # A retired config's held-out MountainCar-v0 runs (out of the report, kept in the results file): 5 of 10 solved, so
+    # the median interpolates between the 5th solved run (103,424) and an unsolved one (120,000 steps trained): it is
+    # only a lower bound, and so is its ratio.
     records = [r for r in run.read_results(RESULTS / "held_out.jsonl") if r["env"] == "MountainCar-v0"]
     cells = report.side_by_side(records, "MountainCar-v0", ["nfq-short-rounds-lr-lin-4e-3-huber-5", "dqn-zoo"])
     assert cells is not None

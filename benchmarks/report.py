@@ -154,6 +154,11 @@ def _joined(records: Sequence[dict[str, Any]], key: str) -> str:
     return ", ".join(map(str, _unique(records, key)))
 
 
+def _commands(cells: Sequence[Cell] | None) -> list[str]:
+    """:return: the runner commands that ran the cells' runs, in order of first appearance"""
+    return _unique([run for cell in cells or [] for run in cell.runs], "command")
+
+
 def is_current(record: dict[str, Any]) -> bool:
     """:return: whether the record ran what its config name holds today (a retired name never does)"""
     try:
@@ -293,11 +298,14 @@ def _missing(cells: Sequence[Cell] | None) -> str | None:
     return f"{have} of {n_seeds} held-out seeds run side by side" if have < n_seeds else None
 
 
-def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any]) -> list[tuple[str, str, str]]:
+def held_out_targets(
+    records: Sequence[dict[str, Any]], targets: dict[str, Any]
+) -> list[tuple[str, str, str, list[str]]]:
     """
     :param records: result lines of the held-out seeds
     :param targets: the targets file's values (:func:`read_targets`)
-    :return: (target, verdict, measured) per env: the shipped config against both peers, and the one config
+    :return: (target, verdict, measured, the runner commands of the runs judged) per env: the shipped config against
+        both peers, and the one config
     """
     goal, one = targets["held_out"], targets["one_config"]
     n_seeds, rows = len(configs.HELD_OUT_SEEDS), []
@@ -314,49 +322,51 @@ def held_out_targets(records: Sequence[dict[str, Any]], targets: dict[str, Any])
             f"{env}: {algo}'s median training seconds to the budget ≤ {goal['seconds_ratio']:g}x {peers[0]}'s",
         ]
         if (missing := _missing(cells)) or cells is None:
-            rows += [(claim, "not enough data", str(missing)) for claim in claims]
+            rows += [(claim, "not enough data", str(missing), _commands(cells)) for claim in claims]
         else:
             nfq, *peer_cells = cells
+            commands = _commands(cells)
             better = min(peer_cells, key=lambda cell: cell.steps_quantile(50)[0])
             verdict, text = steps_ratio(nfq, better, 0.0, goal["steps_ratio"], goal["ci_below"])
-            rows.append((claims[0], verdict, f"{text} against {better.algo}"))
+            rows.append((claims[0], verdict, f"{text} against {better.algo}", commands))
             counts = [cell.n_at_threshold() for cell in cells]
             met = counts[0] >= goal["final_at_least"] and counts[0] >= max(counts[1:])
             text = " vs ".join(f"{cell.algo} {count}/{cell.n}" for cell, count in zip(cells, counts, strict=True))
-            rows.append((claims[1], "met" if met else "not met", text))
+            rows.append((claims[1], "met" if met else "not met", text, commands))
             seconds = [float(np.median(cell.column("train_seconds"))) for cell in cells]
             ratio = seconds[0] / seconds[1]
             launcher = _joined([run for cell in cells for run in cell.runs], "launcher")
             text = f"{ratio:.3f} ({seconds[0]:.1f} s / {seconds[1]:.1f} s, {launcher}); to the solve, median: "
             text += " vs ".join(f"{cell.algo} {cell.solve_seconds()}" for cell in cells)
-            rows.append((claims[2], "met" if ratio <= goal["seconds_ratio"] else "not met", text))
+            rows.append((claims[2], "met" if ratio <= goal["seconds_ratio"] else "not met", text, commands))
         claim = f"{env}: {configs.ONE_CONFIG} (one config) solves in ≥ {one['solved_at_least']}/{n_seeds} seeds, at "
         claim += f"≤ {one['steps_ratio']:g}x {dqn}'s median steps"
         pair = side_by_side(records, env, [configs.ONE_CONFIG, dqn])
         if (missing := _missing(pair)) or pair is None:
-            rows.append((claim, "not enough data", str(missing)))
+            rows.append((claim, "not enough data", str(missing), _commands(pair)))
         else:
             solved = int(pair[0].column("solved").sum())
             verdict, text = steps_ratio(pair[0], pair[1], 0.0, one["steps_ratio"])
             if solved < one["solved_at_least"] or verdict == "not met":
                 verdict = "not met"
-            rows.append((claim, verdict, f"solved {solved}/{pair[0].n}; steps ratio {text}"))
+            rows.append((claim, verdict, f"solved {solved}/{pair[0].n}; steps ratio {text}", _commands(pair)))
     return rows
 
 
-def fidelity_target(cells: dict[str, Cell], fidelity: dict[str, Any]) -> tuple[str, str, str]:
+def fidelity_target(cells: dict[str, Cell], fidelity: dict[str, Any]) -> tuple[str, str, str, list[str]]:
     """
     :param cells: the ``--protocol book`` runs' cells (:func:`book_cells`)
     :param fidelity: the targets file's ``fidelity`` values
-    :return: (target, verdict, measured)
+    :return: (target, verdict, measured, the runner commands of the runs judged)
     """
     low, high = fidelity["low"], fidelity["high"]
     claim = (
         f"{BOOK_ENV}, the book's criterion: {' / '.join(BOOK_PAIR)} median steps to solve within {low:g} to {high:g}"
     )
-    if any(algo not in cells or cells[algo].n < MIN_SEEDS for algo in BOOK_PAIR):
-        return claim, "not enough data", f"needs {MIN_SEEDS} seeds each"
-    return claim, *steps_ratio(cells[BOOK_PAIR[0]], cells[BOOK_PAIR[1]], low, high)
+    pair = [cells[algo] for algo in BOOK_PAIR if algo in cells]
+    if len(pair) < len(BOOK_PAIR) or any(cell.n < MIN_SEEDS for cell in pair):
+        return claim, "not enough data", f"needs {MIN_SEEDS} seeds each", _commands(pair)
+    return claim, *steps_ratio(pair[0], pair[1], low, high), _commands(pair)
 
 
 # --- book protocol, README table -------------------------------------------------------------------------------
@@ -444,7 +454,7 @@ def comparison_row(cells: Sequence[Cell], seeds: str) -> dict[str, str]:
         "steps to solve: median": " vs ".join(_steps(*cell.steps_quantile(50)) for cell in cells),
         "final score ≥ threshold": " vs ".join(f"{cell.n_at_threshold()}/{cell.n}" for cell in cells),
         "train s: median": " vs ".join(f"{np.median(cell.column('train_seconds')):.0f}" for cell in cells),
-        "command": "; ".join(f"`{command}`" for command in _unique([r for c in cells for r in c.runs], "command")),
+        "command": "; ".join(f"`{command}`" for command in _commands(cells)),
     }
 
 
@@ -499,6 +509,7 @@ def build_report(records: Sequence[dict[str, Any]], book: dict[str, Cell], held_
     targets = read_targets()
     cells_by_env, held_out_cells = build_cells(records), build_cells(held_out)
     readings = [fidelity_target(book, targets["fidelity"]), *held_out_targets(held_out, targets)]
+    commands = list(dict.fromkeys(command for *_, cmds in readings for command in cmds))
     seeds = f"{configs.SEEDS[0]}-{configs.SEEDS[-1]}"
     held = f"{configs.HELD_OUT_SEEDS[0]}-{configs.HELD_OUT_SEEDS[-1]}"
     lines = [
@@ -537,9 +548,16 @@ def build_report(records: Sequence[dict[str, Any]], book: dict[str, Cell], held_
         "config ends on its best fit. Held-out runs side by side: runs of one runner command, pooled over commands at "
         "the finest evaluation period they ran.",
         "",
-        pd.DataFrame(readings, columns=["target", "verdict", "measured"])
+        pd.DataFrame(
+            [(*reading, ", ".join(f"[{commands.index(c) + 1}]" for c in cmds)) for *reading, cmds in readings],
+            columns=["target", "verdict", "measured", "runs of"],
+        )
         .assign(verdict=lambda frame: "**" + frame["verdict"] + "**")
         .to_markdown(index=False),
+        "",
+        "The runner commands whose runs the targets judge (`runs of` above):",
+        "",
+        *[f"{number}. `{command}`" for number, command in enumerate(commands, start=1)],
         "",
     ]
     for title, by_env in ((f"held-out seeds {held}", held_out_cells), (f"development seeds {seeds}", cells_by_env)):

@@ -264,6 +264,11 @@ def test_report_keeps_the_numbers_of_recorded_runs_and_judges_on_the_held_out_se
     (mountain_car,) = [cells for target, cells in steps if target.startswith("MountainCar-v0")]
     assert mountain_car[0].strip() == "**met**"
     assert "0.44 (40,448 / 92,160; 95% bootstrap CI of the ratio 0.29-0.55) against dqn-zoo" in mountain_car[1]
+    # each target names the runner commands of the runs it judged: here the entry's two, each beside both peers
+    numbered = dict(re.findall(r"^(\d+)\. `(.+)`$", text, flags=re.MULTILINE))
+    (runs_of,) = [line.split("|")[4] for line in text.splitlines() if "| **" in line and mountain_car[1] in line]
+    entry_commands = {record["command"] for record in held_out if record["algo"] == RECORDED_MOUNTAIN_CAR}
+    assert len(entry_commands) == 2 and {numbered[n] for n in re.findall(r"\[(\d+)\]", runs_of)} == entry_commands
     assert "huber-5-ez-2 8/10 vs dqn-zoo 3/10 vs qrdqn-zoo 6/10" in text
     assert "1.408 (451.0 s / 320.2 s, local pool (2 spawned workers)); to the solve, median: nfq-short" in text
     # an entry that ends on its best fit is compared with peers that do too

@@ -321,11 +321,11 @@ def held_out_targets(
             "than each peer's",
             f"{env}: {algo}'s median training seconds to the budget ≤ {goal['seconds_ratio']:g}x {peers[0]}'s",
         ]
+        commands = _commands(cells)
         if (missing := _missing(cells)) or cells is None:
-            rows += [(claim, "not enough data", str(missing), _commands(cells)) for claim in claims]
+            rows += [(claim, "not enough data", str(missing), commands) for claim in claims]
         else:
             nfq, *peer_cells = cells
-            commands = _commands(cells)
             better = min(peer_cells, key=lambda cell: cell.steps_quantile(50)[0])
             verdict, text = steps_ratio(nfq, better, 0.0, goal["steps_ratio"], goal["ci_below"])
             rows.append((claims[0], verdict, f"{text} against {better.algo}", commands))
@@ -509,7 +509,7 @@ def build_report(records: Sequence[dict[str, Any]], book: dict[str, Cell], held_
     targets = read_targets()
     cells_by_env, held_out_cells = build_cells(records), build_cells(held_out)
     readings = [fidelity_target(book, targets["fidelity"]), *held_out_targets(held_out, targets)]
-    commands = list(dict.fromkeys(command for *_, cmds in readings for command in cmds))
+    numbers = {command: n for n, command in enumerate(dict.fromkeys(c for *_, cmds in readings for c in cmds), 1)}
     seeds = f"{configs.SEEDS[0]}-{configs.SEEDS[-1]}"
     held = f"{configs.HELD_OUT_SEEDS[0]}-{configs.HELD_OUT_SEEDS[-1]}"
     lines = [
@@ -549,7 +549,7 @@ def build_report(records: Sequence[dict[str, Any]], book: dict[str, Cell], held_
         "the finest evaluation period they ran.",
         "",
         pd.DataFrame(
-            [(*reading, ", ".join(f"[{commands.index(c) + 1}]" for c in cmds)) for *reading, cmds in readings],
+            [(*reading, ", ".join(f"[{numbers[c]}]" for c in cmds)) for *reading, cmds in readings],
             columns=["target", "verdict", "measured", "runs of"],
         )
         .assign(verdict=lambda frame: "**" + frame["verdict"] + "**")
@@ -557,7 +557,7 @@ def build_report(records: Sequence[dict[str, Any]], book: dict[str, Cell], held_
         "",
         "The runner commands whose runs the targets judge (`runs of` above):",
         "",
-        *[f"{number}. `{command}`" for number, command in enumerate(commands, start=1)],
+        *[f"{number}. `{command}`" for command, number in numbers.items()],
         "",
     ]
     for title, by_env in ((f"held-out seeds {held}", held_out_cells), (f"development seeds {seeds}", cells_by_env)):

@@ -45,6 +45,7 @@ from sb3_nfq.offline import TransitionDataset
 from sb3_nfq.parameters import (
     DEFAULT_EXPLORATION_FRACTION,
     HYPERPARAMETERS,
+    ExplorationStartName,
     LossName,
     MemoryName,
     TargetModeName,
@@ -106,6 +107,10 @@ class NFQ(OffPolicyAlgorithm):
         action is taken for ``n ~ Zeta(mu)`` steps (``P(n) ~ n^-mu``; smaller ``mu``, longer repeats) or until the
         episode ends, and epsilon is the chance of starting one. ``predict(deterministic=False)`` stays
         epsilon-greedy, one step at a time
+    :param exploration_start: When epsilon's schedule starts: ``"first_step"`` (SB3 DQN's) or
+        ``"first_termination"``: at the first transition into a terminal state (not a time-limit truncation) that
+        NFQ collects, epsilon staying at ``exploration_initial_eps`` until then. Where an episode ends only at the
+        goal (Acrobot, MountainCar), exploration does not wind down before the goal was reached once
     :param max_grad_norm: Clip the gradient norm to this value; ``None`` (textbook): no clipping
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
@@ -155,6 +160,7 @@ class NFQ(OffPolicyAlgorithm):
         exploration_initial_eps: float = 0.5,
         exploration_final_eps: float = 0.5,
         exploration_repeat_mu: float | None = None,
+        exploration_start: ExplorationStartName = "first_step",
         max_grad_norm: float | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -201,6 +207,9 @@ class NFQ(OffPolicyAlgorithm):
         self.exploration_final_eps = exploration_final_eps
         self.exploration_fraction = exploration_fraction
         self.exploration_repeat_mu = exploration_repeat_mu
+        self.exploration_start = exploration_start
+        # The step at which epsilon's schedule started (None: not yet, with exploration_start="first_termination").
+        self._exploration_started_at: int | None = 0 if exploration_start == "first_step" else None
         self.max_grad_norm = max_grad_norm
         # Probability of a random action while collecting ("epsilon" of epsilon-greedy)
         self.exploration_rate = exploration_initial_eps
@@ -288,6 +297,8 @@ class NFQ(OffPolicyAlgorithm):
         callback.on_training_start(locals(), globals())
         assert self.env is not None
         self._q_bound_warned = False
+        if reset_num_timesteps and self._exploration_started_at is not None:
+            self._exploration_started_at = 0  # a schedule that has started restarts with the step count
 
         if rounds.missing_from_memory(self._round_steps, self.replay_buffer, self._n_rounds + 1):
             self._round_steps = self._round_episodes = self._round_target = 0
@@ -304,7 +315,7 @@ class NFQ(OffPolicyAlgorithm):
             if self.num_timesteps >= total_timesteps:
                 break
             # 1. Collect (the rest of) a round with the epsilon-greedy policy, stopping at total_timesteps.
-            self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)
+            self.exploration_rate = self.exploration_schedule(self._exploration_progress_remaining())
             if by_episode:
                 to_collect = length.frequency - self._round_episodes
             else:
@@ -343,6 +354,10 @@ class NFQ(OffPolicyAlgorithm):
         saved with a model always matches the memory; a round longer than the memory stops with an error at once.
         """
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        if self._exploration_started_at is None and any(
+            done and not info.get("TimeLimit.truncated", False) for done, info in zip(dones, infos, strict=True)
+        ):
+            self._exploration_started_at = self.num_timesteps
         if self._repeat_steps_left is not None:
             self._repeat_steps_left[dones] = 0  # a repeated random action ends with its episode
         self._round_steps += 1
@@ -479,9 +494,17 @@ class NFQ(OffPolicyAlgorithm):
         """:return: every transition in the memory as a round fits them (:func:`~sb3_nfq.memory.stored_transitions`)"""
         return stored_transitions(self.replay_buffer, self._vec_normalize_env, self.n_steps, self.gamma)
 
+    def _exploration_progress_remaining(self) -> float:
+        """:return: the progress remaining that epsilon's schedule is at (1: not started; counted from its start)"""
+        if self._exploration_started_at is None:
+            return 1.0
+        if self._exploration_started_at == 0:
+            return self._current_progress_remaining
+        return 1.0 - (self.num_timesteps - self._exploration_started_at) / self._total_timesteps
+
     def _on_step(self) -> None:
         """Update the exploration rate; called by ``collect_rollouts()`` after each environment step."""
-        self.exploration_rate = self.exploration_schedule(self._current_progress_remaining)
+        self.exploration_rate = self.exploration_schedule(self._exploration_progress_remaining())
         self.logger.record("rollout/exploration_rate", self.exploration_rate)
 
     def predict(

@@ -23,6 +23,10 @@ MemoryName = Literal["fresh", "growing"]
 #: "fixed_per_iteration": classic fitted Q-iteration, targets computed once per iteration then regressed on.
 TARGET_MODES = ("recompute_every_step", "fixed_per_iteration")
 TargetModeName = Literal["recompute_every_step", "fixed_per_iteration"]
+#: When epsilon's schedule starts: "first_step" (SB3 DQN's), or "first_termination": at the first transition into a
+#: terminal state (not a time-limit truncation) that NFQ collects, epsilon held at its initial value until then.
+EXPLORATION_STARTS = ("first_step", "first_termination")
+ExplorationStartName = Literal["first_step", "first_termination"]
 
 
 #: NFQ's (and DQN's) default ``exploration_fraction``: only another value is known to be chosen, and refused when it
@@ -156,6 +160,7 @@ def check_hyperparameters(
     exploration_initial_eps: float,
     exploration_final_eps: float,
     exploration_repeat_mu: float | None,
+    exploration_start: str,
     max_grad_norm: float | None,
 ) -> None:
     """Fail early, naming the parameter and its allowed values."""
@@ -242,6 +247,8 @@ def check_hyperparameters(
             "exploration_repeat_mu must be None (random actions of one step) or a number > 1 (the exponent of the "
             f"zeta distribution of their durations; 2.0 is the ez-greedy paper's), got {exploration_repeat_mu!r}"
         )
+    if exploration_start not in EXPLORATION_STARTS:
+        raise ValueError(f"exploration_start must be one of {list(EXPLORATION_STARTS)}, got {exploration_start!r}")
     if max_grad_norm is not None and not max_grad_norm > 0:
         raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")
 

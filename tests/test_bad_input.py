@@ -47,6 +47,10 @@ from tests.envs import NaNRewardAfter
         ({"max_grad_norm": 0.0}, "max_grad_norm must be positive or None"),
         ({"exploration_repeat_mu": 1.0}, r"exploration_repeat_mu must be None .* or a number > 1 .*, got 1.0"),
         ({"exploration_repeat_mu": "2"}, r"exploration_repeat_mu must be None .* or a number > 1 .*, got '2'"),
+        (
+            {"exploration_start": "first_goal"},
+            r"exploration_start must be one of \['first_step', 'first_termination'\], got 'first_goal'",
+        ),
         ({"buffer_size": 100_000}, r"buffer_size=100000 has no effect with memory='fresh'.*memory='growing'"),
         ({"buffer_size": 1024, "train_freq": 1024}, "buffer_size=1024 has no effect with memory='fresh'"),
         ({"exploration_fraction": 0.2}, r"exploration_fraction=0.2 .* both are 0.5.*set them apart"),

@@ -457,6 +457,77 @@ def test_repeated_exploration_is_kept_by_save_and_load_and_a_loaded_model_collec
     assert np.mean([a == b for a, b in pairs]) > 0.65
 
 
+# --- an exploration schedule that starts at the first termination (exploration_start) -----------------------------
+
+
+class StepRecorder(BaseCallback):
+    """Record, at each env step, the step count, the exploration rate and whether an episode terminated."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.steps: list[tuple[int, float, bool]] = []
+
+    def _on_step(self) -> bool:
+        terminated = any(
+            done and not info.get("TimeLimit.truncated", False)
+            for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True)
+        )
+        self.steps.append((self.num_timesteps, self.model.exploration_rate, terminated))  # type: ignore[attr-defined]
+        return True
+
+
+SCHEDULE: dict[str, Any] = {
+    "exploration_initial_eps": 1.0,
+    "exploration_final_eps": 0.1,
+    "exploration_fraction": 0.5,
+    "train_freq": 100,
+    "gradient_steps": 1,
+}
+
+
+def test_epsilon_holds_its_initial_value_until_the_first_termination_then_decays_from_that_step() -> None:
+    model = NFQ("MlpPolicy", "CartPole-v1", exploration_start="first_termination", seed=0, **SCHEDULE)
+    recorder = StepRecorder()
+    model.learn(1000, callback=recorder)
+
+    # The callback sees a step before NFQ updates epsilon for it: each rate is the one of the step before.
+    first = next(steps for steps, _, terminated in recorder.steps if terminated)
+    rates = {steps: rate for steps, rate, _ in recorder.steps}
+    assert first > 1 and all(rates[steps] == 1.0 for steps in range(1, first + 2))
+    for later in (50, 250, 400):  # the schedule spans half of the 1,000 steps, counted from the first termination
+        assert rates[first + later + 1] == pytest.approx(1.0 - 0.9 * later / 500)
+
+
+def test_time_limit_truncations_do_not_start_the_exploration_schedule() -> None:
+    # CartPole cut at 5 steps: a random pole does not fall that soon, so every episode ends truncated.
+    env = make_vec_env("CartPole-v1", n_envs=2, seed=0, env_kwargs={"max_episode_steps": 5})
+    waiting = NFQ("MlpPolicy", env, exploration_start="first_termination", seed=0, **SCHEDULE)
+    recorder = StepRecorder()
+    waiting.learn(1000, callback=recorder)
+    assert not any(terminated for _, _, terminated in recorder.steps)
+    assert {rate for _, rate, _ in recorder.steps} == {1.0} and waiting.exploration_rate == 1.0
+
+    from_the_start = NFQ("MlpPolicy", env, seed=0, **SCHEDULE)  # exploration_start="first_step"
+    from_the_start.learn(1000)
+    assert from_the_start.exploration_rate == pytest.approx(0.1)
+
+
+def test_an_exploration_schedule_that_started_goes_on_after_save_and_load(tmp_path: Path) -> None:
+    schedule = {**SCHEDULE, "exploration_fraction": 1.0}
+    model = NFQ("MlpPolicy", "CartPole-v1", exploration_start="first_termination", seed=0, **schedule)
+    recorder = StepRecorder()
+    model.learn(200, callback=recorder)  # CartPole's first random episode ends within these steps
+    first = next(steps for steps, _, terminated in recorder.steps if terminated)
+    model.save(tmp_path / "model.zip")
+
+    loaded = NFQ.load(tmp_path / "model.zip", env=model.get_env())
+    assert loaded.exploration_start == "first_termination"
+    recorder = StepRecorder()
+    loaded.learn(200, reset_num_timesteps=False, callback=recorder)
+    # As SB3's schedules do, a learn() that goes on spans the schedule over the steps of both, from the same start.
+    assert recorder.steps[1][1] == pytest.approx(1.0 - 0.9 * (201 - first) / 400)
+
+
 # --- n-step returns (n_steps) --------------------------------------------------------------------------------------
 
 

@@ -249,6 +249,11 @@ def check_hyperparameters(
         )
     if exploration_start not in EXPLORATION_STARTS:
         raise ValueError(f"exploration_start must be one of {list(EXPLORATION_STARTS)}, got {exploration_start!r}")
+    if exploration_start != "first_step" and exploration_initial_eps == exploration_final_eps:
+        raise ValueError(
+            f"exploration_start={exploration_start!r} sets when epsilon starts to go from exploration_initial_eps to "
+            f"exploration_final_eps, but both are {exploration_final_eps}: set them apart or drop exploration_start"
+        )
     if max_grad_norm is not None and not max_grad_norm > 0:
         raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")
 

@@ -51,6 +51,10 @@ from tests.envs import NaNRewardAfter
             {"exploration_start": "first_goal"},
             r"exploration_start must be one of \['first_step', 'first_termination'\], got 'first_goal'",
         ),
+        (
+            {"exploration_start": "first_termination"},
+            "exploration_start='first_termination' sets when epsilon starts .* both are 0.5.*drop exploration_start",
+        ),
         ({"buffer_size": 100_000}, r"buffer_size=100000 has no effect with memory='fresh'.*memory='growing'"),
         ({"buffer_size": 1024, "train_freq": 1024}, "buffer_size=1024 has no effect with memory='fresh'"),
         ({"exploration_fraction": 0.2}, r"exploration_fraction=0.2 .* both are 0.5.*set them apart"),

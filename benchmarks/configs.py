@@ -57,7 +57,7 @@ NFQ_CONFIG_NAMES = (
 #: The benchmark config each entry of the shipped sb3_nfq/hyperparams/nfq.yml was measured as.
 SHIPPED: dict[str, str] = {
     "CartPole-v1": "nfq-front-loaded-batch-128-keep-best",
-    "Acrobot-v1": "nfq-front-loaded-batch-128-k12-keep-best",
+    "Acrobot-v1": "nfq-front-loaded-batch-128-k12-first-termination-keep-best",
     "MountainCar-v0": "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-iteration-10k-n-step-3",
     "LunarLander-v3": "nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3",
     "default": "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-iteration-10k-n-step-3",

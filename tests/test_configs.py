@@ -53,8 +53,10 @@ def test_the_entries_are_the_configs_measured_for_them() -> None:
     )
     repeats_and_samples = {"exploration_repeat_mu": 2.0, "iteration_transitions": 10000}
     assert {**mountain_car, "n_timesteps": 0} == {**lunar, "n_timesteps": 0, **repeats_and_samples}
-    # Acrobot: nfq-front-loaded-batch-128-k12-keep-best, CartPole's entry with 12 fitted iterations per round
-    assert {**read_entry("Acrobot-v1"), "n_timesteps": 0} == {**cartpole, "n_timesteps": 0, "gradient_steps": 12}
+    # Acrobot: nfq-front-loaded-batch-128-k12-first-termination-keep-best, CartPole's entry with 12 fitted iterations
+    # per round and epsilon's schedule from the first termination
+    acrobot_changes = {"gradient_steps": 12, "exploration_start": "first_termination"}
+    assert {**read_entry("Acrobot-v1"), "n_timesteps": 0} == {**cartpole, "n_timesteps": 0, **acrobot_changes}
     # the one config: MountainCar's entry, at its own budget
     assert {**default, "n_timesteps": 0} == {**mountain_car, "n_timesteps": 0}
     assert (default["n_timesteps"], mountain_car["n_timesteps"]) == (100_000, 120_000)

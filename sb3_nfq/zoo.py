@@ -76,6 +76,7 @@ CATEGORICAL_SPACE: dict[str, tuple[bool | int | float | str | None, ...]] = {
     "loss": ("mse", "huber"),
     "max_grad_norm": (None, 10.0),
     "exploration_repeat_mu": (None, 2.0),  # one-step random actions (the book), or repeated for n ~ Zeta(2) steps
+    "exploration_start": ("first_step", "first_termination"),  # epsilon's schedule from the start, or the first goal
     "n_steps": (1, 3, 5),  # one-step TD targets (the book), or n-step returns
 }
 #: ``buffer_size`` choices, sampled for ``memory="growing"`` only (a fresh memory holds one round).

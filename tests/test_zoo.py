@@ -167,6 +167,7 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             assert model.policy.net_arch == NET_ARCHS[trial.params["net_arch"]]
             assert model.huber_delta == trial.params.get("huber_delta", 1.0)
             assert model.exploration_repeat_mu == trial.params["exploration_repeat_mu"]
+            assert model.exploration_start == trial.params["exploration_start"]  # over Acrobot's entry's too
             assert model.n_steps == trial.params["n_steps"]  # over LunarLander's entry's n_steps too
             memory_size = trial.params.get("buffer_size", trial.params["train_freq"])
             epochs = max(1, round(trial.params["fit_cost"] * trial.params["train_freq"] / memory_size))

@@ -49,7 +49,6 @@ HELD_OUT_SEEDS = tuple(range(5, 15))
 NFQ_CONFIG_NAMES = (
     "nfq-book",
     "nfq-front-loaded-batch-128",
-    "nfq-front-loaded-batch-128-k12",
     "nfq-front-loaded-batch-128-k12-first-termination",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-iteration-10k-n-step-3",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3",

@@ -498,7 +498,7 @@ class NFQ(OffPolicyAlgorithm):
         """:return: the progress remaining that epsilon's schedule is at (1: not started; counted from its start)"""
         if self._exploration_started_at is None:
             return 1.0
-        if self._exploration_started_at == 0:
+        if self._exploration_started_at == 0:  # SB3's own progress, so that the default stays SB3's schedule exactly
             return self._current_progress_remaining
         return 1.0 - (self.num_timesteps - self._exploration_started_at) / self._total_timesteps
 

@@ -1,6 +1,7 @@
 """
 How NFQ acts: epsilon-greedy, with one coin flip per observation, or its temporally-extended form while collecting
-(a random action repeated for a random number of steps); and the greedy action of the Q-network.
+(a random action repeated for a random number of steps); and the greedy action of the Q-network (or, optimistic, of
+an ensemble's).
 """
 
 from collections.abc import Callable
@@ -11,7 +12,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.preprocessing import is_image_space
 
-from sb3_nfq.policies import NFQPolicy
+from sb3_nfq.policies import NFQPolicy, critic_q_values
 
 
 def reject_obs_info_pair(observation: Any) -> None:
@@ -102,7 +103,9 @@ def epsilon_greedy_predict(
     return actions if vectorized else np.asarray(actions[0])
 
 
-def greedy_actions(policy: NFQPolicy, observation: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
+def greedy_actions(
+    policy: NFQPolicy, observation: np.ndarray | dict[str, np.ndarray], ucb: float | None = None
+) -> np.ndarray:
     """
     The greedy actions while collecting. ``collect_rollouts`` has already put the policy in eval mode, so plain
     vector observations (a non-image ``Box``) go straight to the Q-network: SB3's ``policy.predict`` would set the
@@ -110,8 +113,14 @@ def greedy_actions(policy: NFQPolicy, observation: np.ndarray | dict[str, np.nda
 
     :param policy: the NFQ policy
     :param observation: the current observations of the envs
+    :param ucb: ``None``: the actions greedy on the Q-values (the critics' mean). A number ``c``: SUNRISE's optimistic
+        actions, greedy on the critics' mean plus ``c`` times their standard deviation
     :return: one action per env
     """
+    if ucb is not None:
+        with th.no_grad():
+            q_values = critic_q_values(policy.q_net, policy.obs_to_tensor(observation)[0])
+        return (q_values.mean(dim=1) + ucb * q_values.std(dim=1)).argmax(dim=1).cpu().numpy()
     space = policy.observation_space
     if isinstance(observation, np.ndarray) and isinstance(space, spaces.Box) and not is_image_space(space):
         with th.no_grad():

@@ -13,6 +13,7 @@ import torch as th
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_nfq.memory import rows_per_chunk
+from sb3_nfq.policies import critic_q_values
 
 if TYPE_CHECKING:
     from sb3_nfq.nfq import NFQ
@@ -192,21 +193,22 @@ def td_targets(q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float) -> 
     :param data: transitions
     :param gamma: the discount factor (n-step transitions carry their own, ``discounts``)
     :return: ``r + gamma * (1 - terminated) * max_a' Q(s', a')`` with the network in eval mode (no Dropout,
-        BatchNorm's running statistics used and left as they are), as a constant (no graph), shape ``(n, 1)``;
-        computed in chunks so that a large memory fits in memory (on a CPU, of at most :data:`TARGET_CHUNK_ROWS` rows)
+        BatchNorm's running statistics used and left as they are), as a constant (no graph), shape ``(n, critics)``
+        (each critic's own targets; one critic for a plain ``QNetwork``); computed in chunks so that a large memory
+        fits in memory (on a CPU, of at most :data:`TARGET_CHUNK_ROWS` rows)
     """
     with th.no_grad(), eval_mode(q_net):
         n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.next_observations)
         if data.rewards.device.type == "cpu":
             chunk_rows = min(chunk_rows, TARGET_CHUNK_ROWS)
         if n_transitions <= chunk_rows:
-            next_q_values = q_net(data.next_observations).max(dim=1).values
+            next_q_values = critic_q_values(q_net, data.next_observations).max(dim=2).values
         else:
             chunks = (slice(start, start + chunk_rows) for start in range(0, n_transitions, chunk_rows))
             next_q_values = th.cat(
-                [q_net(take_rows(data.next_observations, rows)).max(dim=1).values for rows in chunks]
+                [critic_q_values(q_net, take_rows(data.next_observations, rows)).max(dim=2).values for rows in chunks]
             )
-        return data.rewards + (1 - data.dones) * discount(data, gamma) * next_q_values.reshape(-1, 1)
+        return data.rewards + (1 - data.dones) * discount(data, gamma) * next_q_values
 
 
 def states_and_successors(batch: ReplayBufferSamples, n_envs: int) -> tuple[th.Tensor, th.Tensor] | None:
@@ -258,6 +260,16 @@ def shared_successor_states(
     return None
 
 
+def taken_q_values(q_values: th.Tensor, actions: th.Tensor) -> th.Tensor:
+    """
+    :param q_values: each critic's Q-values, ``(n, critics, n_actions)``
+    :param actions: the actions taken, ``(n, 1)``
+    :return: each critic's ``Q(s, a)`` of the actions taken, ``(n, critics)``
+    """
+    n_critics = q_values.shape[1]
+    return th.gather(q_values, 2, actions.long().unsqueeze(1).expand(-1, n_critics, 1)).squeeze(2)
+
+
 def loss_and_gradient(
     q_net: th.nn.Module,
     loss_fn: Callable[..., th.Tensor],
@@ -284,22 +296,22 @@ def loss_and_gradient(
     n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.observations)
     if targets is None and shared_states is not None:
         new_next_observations, next_rows = shared_states
-        all_q_values = q_net(data.observations)
+        all_q_values = critic_q_values(q_net, data.observations)
         with th.no_grad():
-            q_candidates = th.cat([all_q_values.detach(), q_net(new_next_observations)])
-            next_q_values = q_candidates[next_rows].max(dim=1).values.reshape(-1, 1)
+            q_candidates = th.cat([all_q_values.detach(), critic_q_values(q_net, new_next_observations)])
+            next_q_values = q_candidates[next_rows].max(dim=2).values
             targets = data.rewards + (1 - data.dones) * discount(data, gamma) * next_q_values
-        q_values = th.gather(all_q_values, 1, data.actions.long())
+        q_values = taken_q_values(all_q_values, data.actions)
     elif n_transitions <= chunk_rows:
         targets = td_targets(q_net, data, gamma) if targets is None else targets
-        q_values = th.gather(q_net(data.observations), 1, data.actions.long())
+        q_values = taken_q_values(critic_q_values(q_net, data.observations), data.actions)
     else:
         targets = td_targets(q_net, data, gamma) if targets is None else targets
         loss_value = 0.0
         for rows in th.arange(n_transitions, device=targets.device).split(chunk_rows):
-            q_values = th.gather(q_net(take_rows(data.observations, rows)), 1, data.actions[rows].long())
+            q_values = taken_q_values(critic_q_values(q_net, take_rows(data.observations, rows)), data.actions[rows])
             chunk_targets = targets[rows]
-            loss = loss_fn(q_values, chunk_targets, reduction="sum") / n_transitions
+            loss = loss_fn(q_values, chunk_targets, reduction="sum") / targets.numel()
             loss.backward()
             loss_value += loss.item()
         return loss_value, q_values, chunk_targets

@@ -111,6 +111,10 @@ class NFQ(OffPolicyAlgorithm):
         ``"first_termination"``: at the first transition into a terminal state (not a time-limit truncation) that
         NFQ collects, epsilon staying at ``exploration_initial_eps`` until then. Where an episode ends only at the
         goal (Acrobot, MountainCar), exploration does not wind down before the goal was reached once
+    :param exploration_ucb: ``None`` (textbook): the greedy actions while collecting are greedy on the Q-values. A
+        number ``c >= 0``, with ``policy_kwargs=dict(n_critics=...)`` of at least 2: SUNRISE's optimistic actions (Lee
+        et al., 2021, whose choice is 1 to 10), greedy on the critics' mean Q-values plus ``c`` times their standard
+        deviation, which leads to where the critics disagree. ``predict`` and evaluations stay on the mean
     :param max_grad_norm: Clip the gradient norm to this value; ``None`` (textbook): no clipping
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
@@ -161,6 +165,7 @@ class NFQ(OffPolicyAlgorithm):
         exploration_final_eps: float = 0.5,
         exploration_repeat_mu: float | None = None,
         exploration_start: ExplorationStartName = "first_step",
+        exploration_ucb: float | None = None,
         max_grad_norm: float | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -208,6 +213,7 @@ class NFQ(OffPolicyAlgorithm):
         self.exploration_fraction = exploration_fraction
         self.exploration_repeat_mu = exploration_repeat_mu
         self.exploration_start = exploration_start
+        self.exploration_ucb = exploration_ucb
         # The step at which epsilon's schedule started (None: not yet, with exploration_start="first_termination").
         self._exploration_started_at: int | None = 0 if exploration_start == "first_step" else None
         self.max_grad_norm = max_grad_norm
@@ -252,6 +258,12 @@ class NFQ(OffPolicyAlgorithm):
         super()._setup_model()
         self.n_steps = n_steps
         self.q_net = self.policy.q_net
+        if self.exploration_ucb is not None and self.policy.n_critics < 2:
+            raise ValueError(
+                f"exploration_ucb={self.exploration_ucb} collects on the spread of an ensemble's Q-values, but the "
+                f"policy has n_critics={self.policy.n_critics}: pass policy_kwargs=dict(n_critics=...) of at least 2, "
+                "or drop exploration_ucb"
+            )
         # Rprop needs a round's fit in full batches, which only a fresh memory of step rounds bounds.
         fit_size = rounds.fresh_round_transitions(self.train_freq, self.n_envs, self.memory)
         check_full_batch_optimizer(
@@ -544,10 +556,12 @@ class NFQ(OffPolicyAlgorithm):
         """
         assert self._last_obs is not None
         last_obs = self._last_obs
+
+        def greedy() -> np.ndarray:
+            return greedy_actions(self.policy, last_obs, self.exploration_ucb)
+
         if self.exploration_repeat_mu is None:
-            actions = epsilon_greedy(
-                self.exploration_rate, self.action_space, n_envs, lambda: greedy_actions(self.policy, last_obs)
-            )
+            actions = epsilon_greedy(self.exploration_rate, self.action_space, n_envs, greedy)
             return actions, actions
         if self._repeat_steps_left is None or len(self._repeat_steps_left) != n_envs:
             self._repeat_steps_left = np.zeros(n_envs, dtype=np.int64)
@@ -559,7 +573,7 @@ class NFQ(OffPolicyAlgorithm):
             self.exploration_repeat_mu,
             self._repeat_steps_left,
             self._repeated_actions,
-            lambda: greedy_actions(self.policy, last_obs),
+            greedy,
         )
         return actions, actions
 

@@ -2,6 +2,7 @@
 
 import functools
 import inspect
+import math
 import numbers
 import warnings
 from collections.abc import Callable
@@ -115,6 +116,11 @@ def _is_positive_number(value: object) -> bool:
     return not isinstance(value, bool) and isinstance(value, int | float) and value > 0
 
 
+def _is_finite_non_negative(value: object) -> bool:
+    """:return: whether ``value`` is an int or float (not a bool) in ``[0, inf)``"""
+    return not isinstance(value, bool) and isinstance(value, int | float) and 0 <= value < math.inf
+
+
 def is_positive_int(value: object) -> bool:
     """:return: whether ``value`` is an int (not a bool) above 0"""
     return isinstance(value, int) and not isinstance(value, bool) and value > 0
@@ -161,6 +167,7 @@ def check_hyperparameters(
     exploration_final_eps: float,
     exploration_repeat_mu: float | None,
     exploration_start: str,
+    exploration_ucb: float | None,
     max_grad_norm: float | None,
 ) -> None:
     """Fail early, naming the parameter and its allowed values."""
@@ -253,6 +260,11 @@ def check_hyperparameters(
         raise ValueError(
             f"exploration_start={exploration_start!r} sets when epsilon starts to go from exploration_initial_eps to "
             f"exploration_final_eps, but both are {exploration_final_eps}: set them apart or drop exploration_start"
+        )
+    if exploration_ucb is not None and not _is_finite_non_negative(exploration_ucb):
+        raise ValueError(
+            "exploration_ucb must be None (greedy on the Q-values) or a number >= 0 (the weight of the critics' "
+            f"standard deviation in the optimistic actions; SUNRISE's are 1 to 10), got {exploration_ucb!r}"
         )
     if max_grad_norm is not None and not max_grad_norm > 0:
         raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")

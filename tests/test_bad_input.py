@@ -47,6 +47,11 @@ from tests.envs import NaNRewardAfter
         ({"max_grad_norm": 0.0}, "max_grad_norm must be positive or None"),
         ({"exploration_repeat_mu": 1.0}, r"exploration_repeat_mu must be None .* or a number > 1 .*, got 1.0"),
         ({"exploration_repeat_mu": "2"}, r"exploration_repeat_mu must be None .* or a number > 1 .*, got '2'"),
+        ({"exploration_ucb": -1.0}, r"exploration_ucb must be None .* or a number >= 0 .*, got -1.0"),
+        ({"exploration_ucb": float("nan")}, r"exploration_ucb must be None .* or a number >= 0 .*, got nan"),
+        ({"exploration_ucb": True}, r"exploration_ucb must be None .* or a number >= 0 .*, got True"),
+        ({"exploration_ucb": 1.0}, r"exploration_ucb=1.0 collects on .* n_critics=1: pass policy_kwargs=dict\(n_crit"),
+        ({"policy_kwargs": {"n_critics": 0}}, r"n_critics \(Q-networks of the ensemble\) must be a positive integer"),
         (
             {"exploration_start": "first_goal"},
             r"exploration_start must be one of \['first_step', 'first_termination'\], got 'first_goal'",

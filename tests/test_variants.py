@@ -1,6 +1,7 @@
 """
 Beyond the book: the growing memory, fixed targets per iteration (classic FQI), Rprop, random actions repeated
-over several steps (temporally-extended epsilon-greedy), and n-step returns.
+over several steps (temporally-extended epsilon-greedy), an ensemble of Q-networks collecting optimistically, and
+n-step returns.
 """
 
 import itertools
@@ -18,8 +19,10 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
 from sb3_nfq import NFQ
-from sb3_nfq.fitting import take, td_targets
+from sb3_nfq.exploration import greedy_actions
+from sb3_nfq.fitting import loss_and_gradient, take, td_targets
 from sb3_nfq.memory import stored_transitions
+from sb3_nfq.policies import critic_q_values
 from sb3_nfq.rounds import fresh_round_transitions, round_length, round_size
 from tests.conftest import TransitionRecorder, record_fitting
 
@@ -455,6 +458,90 @@ def test_repeated_exploration_is_kept_by_save_and_load_and_a_loaded_model_collec
     pairs = [(a, b) for actions in recorder.episodes for a, b in itertools.pairwise(actions)]
     # One random action a step repeats the last one half the time; Zeta(2) durations, about 4 times in 5.
     assert np.mean([a == b for a, b in pairs]) > 0.65
+
+
+# --- an ensemble of Q-networks (n_critics) and optimistic collecting on it (exploration_ucb) --------------------------
+
+
+def critics_model(**kwargs: Any) -> NFQ:
+    policy_kwargs = {"n_critics": 3, "net_arch": [16, 16], "optimizer_class": th.optim.Adam}
+    return NFQ("MlpPolicy", "CartPole-v1", policy_kwargs=policy_kwargs, train_freq=128, seed=0, **kwargs)
+
+
+def test_critics_start_apart_and_act_on_their_mean() -> None:
+    model = critics_model()
+    obs = th.as_tensor(np.random.default_rng(0).normal(size=(32, 4)), dtype=th.float32)
+    with th.no_grad():
+        per_critic = critic_q_values(model.q_net, obs)
+        assert per_critic.shape == (32, 3, 2)
+        th.testing.assert_close(model.q_net(obs), per_critic.mean(dim=1))
+    assert (per_critic[:, 0] - per_critic[:, 1]).abs().min() > 0  # own initial weights
+    greedy = model.predict(obs.numpy(), deterministic=True)[0]
+    np.testing.assert_array_equal(greedy, per_critic.mean(dim=1).argmax(dim=1).numpy())
+
+
+@pytest.mark.parametrize("target_mode", ["recompute_every_step", "fixed_per_iteration"])
+def test_each_critic_is_fitted_to_its_own_targets(target_mode: str) -> None:
+    model = critics_model(target_mode=target_mode, gamma=0.9)
+    model.learn(64)  # half a round: collected, not yet fitted
+    batch = stored_transitions(model.replay_buffer, None)
+    q_net = model.q_net
+    targets = td_targets(q_net, batch, model.gamma)
+    with th.no_grad():
+        next_q = critic_q_values(q_net, batch.next_observations)
+    for critic in range(3):
+        expected = batch.rewards[:, 0] + model.gamma * (1 - batch.dones[:, 0]) * next_q[:, critic].max(dim=1).values
+        th.testing.assert_close(targets[:, critic], expected)
+
+    # The fit's gradient for each critic is that of its own regression (the loss averages over the critics).
+    q_net.zero_grad()
+    loss_and_gradient(q_net, th.nn.functional.mse_loss, model.gamma, batch, targets, None)
+    weights = [p for name, p in q_net.named_parameters() if ".weights." in name]
+    fit_grads = [grad.clone() for p in weights if (grad := p.grad) is not None]
+    assert len(fit_grads) == 3  # the three layers, each holding every critic's weights
+    for critic in range(3):
+        q_taken = critic_q_values(q_net, batch.observations)[:, critic].gather(1, batch.actions.long())
+        own_loss = th.nn.functional.mse_loss(q_taken, targets[:, critic : critic + 1]) / 3
+        for fit_grad, own_grad in zip(fit_grads, th.autograd.grad(own_loss, weights), strict=True):
+            th.testing.assert_close(fit_grad[critic], own_grad[critic])
+
+
+def test_optimistic_actions_take_the_critics_mean_plus_c_standard_deviations() -> None:
+    model = critics_model(exploration_ucb=3.0)
+    obs = np.random.default_rng(1).normal(size=(256, 4)).astype(np.float32)
+    with th.no_grad():
+        per_critic = critic_q_values(model.q_net, th.as_tensor(obs))
+    mean, std = per_critic.mean(dim=1), per_critic.std(dim=1)
+    optimistic = greedy_actions(model.policy, obs, 3.0)
+    np.testing.assert_array_equal(optimistic, (mean + 3.0 * std).argmax(dim=1).numpy())
+    assert (optimistic != mean.argmax(dim=1).numpy()).any()  # the spread changes some actions
+    np.testing.assert_array_equal(greedy_actions(model.policy, obs, 0.0), mean.argmax(dim=1).numpy())
+
+
+def test_collecting_is_optimistic_and_predict_stays_on_the_mean() -> None:
+    model = critics_model(exploration_ucb=10.0, exploration_initial_eps=0.0, exploration_final_eps=0.0)
+    recorder = TransitionRecorder()
+    model.learn(64, callback=recorder)  # half a round, not fitted: every action came from the initial critics
+    obs, actions, _ = recorder.transitions(0, 64)
+    with th.no_grad():
+        per_critic = critic_q_values(model.q_net, th.as_tensor(obs))
+    optimistic = (per_critic.mean(dim=1) + 10.0 * per_critic.std(dim=1)).argmax(dim=1).numpy()
+    np.testing.assert_array_equal(actions.reshape(-1), optimistic)
+    np.testing.assert_array_equal(
+        model.predict(obs, deterministic=True)[0], per_critic.mean(dim=1).argmax(dim=1).numpy()
+    )
+
+
+def test_critics_and_optimism_are_kept_by_save_and_load(tmp_path: Path) -> None:
+    model = critics_model(exploration_ucb=3.0)
+    model.learn(256)
+    model.save(tmp_path / "model.zip")
+    obs = np.random.default_rng(2).normal(size=(64, 4)).astype(np.float32)
+    for loaded in (NFQ.load(tmp_path / "model.zip"), NFQ.load(tmp_path / "model.zip", safe=True, env=model.get_env())):
+        assert loaded.policy.n_critics == 3 and loaded.exploration_ucb == 3.0
+        greedy = loaded.predict(obs, deterministic=True)[0]
+        np.testing.assert_array_equal(greedy, model.predict(obs, deterministic=True)[0])
+        np.testing.assert_array_equal(greedy_actions(loaded.policy, obs, 3.0), greedy_actions(model.policy, obs, 3.0))
 
 
 # --- an exploration schedule that starts at the first termination (exploration_start) -----------------------------

@@ -264,7 +264,7 @@ def check_hyperparameters(
     if exploration_ucb is not None and not _is_finite_non_negative(exploration_ucb):
         raise ValueError(
             "exploration_ucb must be None (greedy on the Q-values) or a number >= 0 (the weight of the critics' "
-            f"standard deviation in the optimistic actions; SUNRISE's are 1 to 10), got {exploration_ucb!r}"
+            f"standard deviation in the optimistic actions), got {exploration_ucb!r}"
         )
     if max_grad_norm is not None and not max_grad_norm > 0:
         raise ValueError(f"max_grad_norm must be positive or None (no clipping), got {max_grad_norm!r}")

@@ -114,7 +114,7 @@ class NFQ(OffPolicyAlgorithm):
     :param exploration_ucb: ``None`` (textbook): the greedy actions while collecting are greedy on the Q-values. A
         number ``c >= 0``, with ``policy_kwargs=dict(n_critics=...)`` of at least 2: SUNRISE's optimistic actions (Lee
         et al., 2021), greedy on the critics' mean Q-values plus ``c`` times their standard deviation, which leads to
-        where the critics disagree. ``predict`` and evaluations stay greedy on the mean
+        where the critics disagree. ``predict`` (epsilon-greedy or greedy) and evaluations act on the mean
     :param max_grad_norm: Clip the gradient norm to this value; ``None`` (textbook): no clipping
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over

@@ -117,13 +117,15 @@ def greedy_actions(
         actions, greedy on the critics' mean plus ``c`` times their standard deviation
     :return: one action per env
     """
-    if ucb is not None:
-        with th.no_grad():
-            q_values = critic_q_values(policy.q_net, policy.obs_to_tensor(observation)[0])
-        return (q_values.mean(dim=1) + ucb * q_values.std(dim=1)).argmax(dim=1).cpu().numpy()
     space = policy.observation_space
-    if isinstance(observation, np.ndarray) and isinstance(space, spaces.Box) and not is_image_space(space):
-        with th.no_grad():
-            q_values = policy.q_net(th.as_tensor(observation, device=policy.device))
-        return q_values.argmax(dim=1).cpu().numpy()
-    return policy.predict(observation, deterministic=True)[0]
+    plain_vectors = isinstance(observation, np.ndarray) and isinstance(space, spaces.Box) and not is_image_space(space)
+    if ucb is None and not plain_vectors:
+        return policy.predict(observation, deterministic=True)[0]
+    obs = th.as_tensor(observation, device=policy.device) if plain_vectors else policy.obs_to_tensor(observation)[0]
+    with th.no_grad():
+        if ucb is None:
+            q_values = policy.q_net(obs)
+        else:
+            per_critic = critic_q_values(policy.q_net, obs)
+            q_values = per_critic.mean(dim=1) + ucb * per_critic.std(dim=1)
+    return q_values.argmax(dim=1).cpu().numpy()

@@ -97,6 +97,33 @@ def check_q_values_bounded(model: "NFQ", q_abs_max: float, rewards: th.Tensor) -
     return True
 
 
+def flushes_denormals() -> bool:
+    """:return: whether this thread's CPU now flushes denormal floats to zero (``torch.set_flush_denormal``)"""
+    return (th.full((), 1e-30) * 1e-10).item() == 0.0
+
+
+@contextlib.contextmanager
+def denormals_flushed(device: th.device) -> Iterator[None]:
+    """
+    On a CPU, flush denormal floats (below ``1.2e-38`` in float32) to zero for the block, in this thread (with one
+    torch thread, the whole computation), then restore the mode found. Adam's and RMSprop's running averages for a
+    weight whose gradient stays zero (a ReLU unit that no longer fires) decay through the denormal range, where a CPU
+    computes many times slower than on other floats; flushed, they are zero. A denormal average moves no float32 weight
+    of a network's size (its update is rounded away), so the fitted weights stay the same.
+
+    :param device: the fit's device; on any other than a CPU the block runs as it is
+    """
+    if device.type != "cpu":
+        yield
+        return
+    was_flushing = flushes_denormals()
+    th.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        th.set_flush_denormal(was_flushing)
+
+
 @contextlib.contextmanager
 def eval_mode(module: th.nn.Module) -> Iterator[None]:
     """Put ``module`` in eval mode for the block, then back in the mode it was in."""

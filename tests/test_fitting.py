@@ -17,7 +17,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 from torch.nn import functional as F
 
 from sb3_nfq import NFQ
-from sb3_nfq.fitting import minibatch_indices
+from sb3_nfq.fitting import flushes_denormals, minibatch_indices
 from sb3_nfq.parameters import loss_function
 from tests.conftest import TransitionRecorder, record_fitting
 
@@ -128,6 +128,28 @@ def test_round_is_discarded_after_fitting() -> None:
     model.learn(64)
     assert model.replay_buffer.size() == 0
     assert model._n_rounds == 2
+
+
+@pytest.mark.parametrize("flushing_before", [False, True])
+def test_every_gradient_step_runs_with_denormals_flushed_and_the_mode_found_comes_back(flushing_before: bool) -> None:
+    if not th.set_flush_denormal(flushing_before):
+        pytest.skip("this CPU cannot flush denormal floats to zero")
+    modes: list[bool] = []
+
+    class ModeRecordingAdam(th.optim.Adam):
+        def step(self, closure: Any = None) -> Any:
+            modes.append(flushes_denormals())
+            return super().step(closure)
+
+    try:
+        assert flushes_denormals() == flushing_before
+        policy_kwargs = dict(optimizer_class=ModeRecordingAdam)
+        model = NFQ("MlpPolicy", "CartPole-v1", train_freq=32, gradient_steps=2, policy_kwargs=policy_kwargs, seed=0)
+        model.learn(64)
+        assert modes == [True] * 4
+        assert flushes_denormals() == flushing_before
+    finally:
+        th.set_flush_denormal(False)
 
 
 def test_batch_size_splits_each_fitted_iteration_into_one_epoch_of_minibatches() -> None:

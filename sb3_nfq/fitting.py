@@ -13,7 +13,7 @@ import torch as th
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_nfq.memory import rows_per_chunk
-from sb3_nfq.policies import critic_q_values
+from sb3_nfq.policies import critic_q_values, n_critics
 
 if TYPE_CHECKING:
     from sb3_nfq.nfq import NFQ
@@ -203,9 +203,10 @@ def take(batch: ReplayBufferSamples, indices: th.Tensor | None) -> ReplayBufferS
     )
 
 
-#: Most rows of one target pass over the memory on a CPU. A pass over tens of thousands of rows at once moves
-#: activations too large for the CPU's caches through memory, layer after layer; passes over pieces this size compute
-#: the same rows with the activations in cache. Not measured on a GPU, where passes stay as large as memory allows.
+#: Most rows of one target pass over the memory on a CPU (for an ensemble, divided among its critics, each of which
+#: computes its own activations). A pass over tens of thousands of rows at once moves activations too large for the
+#: CPU's caches through memory, layer after layer; passes over pieces this size compute the same rows with the
+#: activations in cache. Not measured on a GPU, where passes stay as large as memory allows.
 TARGET_CHUNK_ROWS = 2048
 
 
@@ -227,7 +228,7 @@ def td_targets(q_net: th.nn.Module, data: ReplayBufferSamples, gamma: float) -> 
     with th.no_grad(), eval_mode(q_net):
         n_transitions, chunk_rows = len(data.rewards), rows_per_chunk(data.next_observations)
         if data.rewards.device.type == "cpu":
-            chunk_rows = min(chunk_rows, TARGET_CHUNK_ROWS)
+            chunk_rows = min(chunk_rows, max(1, TARGET_CHUNK_ROWS // n_critics(q_net)))
         if n_transitions <= chunk_rows:
             next_q_values = critic_q_values(q_net, data.next_observations).max(dim=2).values
         else:

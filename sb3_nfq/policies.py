@@ -29,6 +29,7 @@ __all__ = [
     "NFQPolicy",
     "QNetwork",
     "critic_q_values",
+    "n_critics",
 ]
 
 
@@ -116,6 +117,11 @@ class CriticsQNetwork(QNetwork):
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         return {**super()._get_constructor_parameters(), "n_critics": self.n_critics}
+
+
+def n_critics(q_net: nn.Module) -> int:
+    """:return: how many critics ``q_net`` computes: a :class:`CriticsQNetwork`'s ``n_critics``, else 1"""
+    return q_net.n_critics if isinstance(q_net, CriticsQNetwork) else 1
 
 
 def critic_q_values(q_net: nn.Module, obs: PyTorchObs) -> th.Tensor:

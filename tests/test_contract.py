@@ -20,6 +20,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from sb3_nfq import NFQ
 from sb3_nfq.fitting import td_targets
+from sb3_nfq.policies import critic_q_values
 from tests.envs import Frames, LineWorld
 
 
@@ -200,21 +201,22 @@ def test_fitting_reads_the_memory_without_copying_it() -> None:
     assert np.shares_memory(batch.next_observations.numpy(), model.replay_buffer.next_observations)
 
 
-def test_a_target_pass_over_a_large_memory_goes_in_pieces_with_the_one_pass_targets() -> None:
+@pytest.mark.parametrize("critics", [1, 2])
+def test_a_target_pass_over_a_large_memory_goes_in_pieces_with_the_one_pass_targets(critics: int) -> None:
     from sb3_nfq.fitting import TARGET_CHUNK_ROWS
 
-    model = NFQ("MlpPolicy", "CartPole-v1", memory="growing", train_freq=5000, gamma=0.99, seed=0, device="cpu")
+    kwargs: dict[str, Any] = dict(memory="growing", train_freq=5000, gamma=0.99, policy_kwargs=dict(n_critics=critics))
+    model = NFQ("MlpPolicy", "CartPole-v1", seed=0, device="cpu", **kwargs)
     model.learn(4999)  # a round cut short: 4,999 transitions in the memory, none fitted
     batch = model._stored_transitions()
     sizes: list[int] = []
-    model.q_net.register_forward_pre_hook(lambda module, args: sizes.append(len(args[0])))
+    model.q_net.q_net.register_forward_pre_hook(lambda module, args: sizes.append(len(args[0])))
     targets = td_targets(model.q_net, batch, model.gamma)
-    assert sizes == [TARGET_CHUNK_ROWS, TARGET_CHUNK_ROWS, 4999 - 2 * TARGET_CHUNK_ROWS]
+    piece = TARGET_CHUNK_ROWS // critics  # each critic computes its own activations
+    assert sizes == [piece] * (4999 // piece) + [4999 % piece]
     with th.no_grad():
-        one_pass = (
-            batch.rewards + (1 - batch.dones) * 0.99 * model.q_net(batch.next_observations).max(dim=1).values[:, None]
-        )
-    th.testing.assert_close(targets, one_pass)
+        next_q_values = critic_q_values(model.q_net, batch.next_observations).max(dim=2).values
+    th.testing.assert_close(targets, batch.rewards + (1 - batch.dones) * 0.99 * next_q_values)
 
 
 def test_passes_over_an_image_memory_are_bounded_in_bytes_and_give_the_full_batch_gradient(

@@ -108,8 +108,9 @@ def denormals_flushed(device: th.device) -> Iterator[None]:
     On a CPU, flush denormal floats (below ``1.2e-38`` in float32) to zero for the block, in this thread (with one
     torch thread, the whole computation), then restore the mode found. Adam's and RMSprop's running averages for a
     weight whose gradient stays zero (a ReLU unit that no longer fires) decay through the denormal range, where a CPU
-    computes many times slower than on other floats; flushed, they are zero. A denormal average moves no float32 weight
-    of a network's size (its update is rounded away), so the fitted weights stay the same.
+    computes many times slower than on other floats; flushed, they are zero. The update a denormal average makes is far
+    below a float32 weight's precision and is rounded away, so the weights come out the same unless the network's own
+    activations or gradients reach that range.
 
     :param device: the fit's device; on any other than a CPU the block runs as it is
     """

@@ -99,7 +99,8 @@ def check_q_values_bounded(model: "NFQ", q_abs_max: float, rewards: th.Tensor) -
 
 def flushes_denormals() -> bool:
     """:return: whether this thread's CPU now flushes denormal floats to zero (``torch.set_flush_denormal``)"""
-    return (th.full((), 1e-30) * 1e-10).item() == 0.0
+    # 1e-40 is denormal in float32 whatever torch's default dtype (in float64 it is a normal number).
+    return (th.full((), 1e-30, dtype=th.float32) * 1e-10).item() == 0.0
 
 
 @contextlib.contextmanager

@@ -153,6 +153,20 @@ def test_every_gradient_step_runs_with_denormals_flushed_and_the_mode_found_come
         th.set_flush_denormal(False)
 
 
+def test_the_flush_probe_reads_the_mode_whatever_the_default_dtype() -> None:
+    if not th.set_flush_denormal(True):
+        pytest.skip("this CPU cannot flush denormal floats to zero")
+    default_dtype = th.get_default_dtype()
+    try:
+        th.set_default_dtype(th.float64)
+        assert flushes_denormals()
+        th.set_flush_denormal(False)
+        assert not flushes_denormals()
+    finally:
+        th.set_default_dtype(default_dtype)
+        th.set_flush_denormal(False)
+
+
 def test_batch_size_splits_each_fitted_iteration_into_one_epoch_of_minibatches() -> None:
     model = NFQ("MlpPolicy", "CartPole-v1", train_freq=64, gradient_steps=3, batch_size=16, seed=0)
     fitting = record_fitting(model)

@@ -417,7 +417,7 @@ class NFQ(OffPolicyAlgorithm):
         loss_fn = loss_function(self.loss, self.huber_delta)
         shared_states = shared_successor_states(self.q_net, batch, n_envs, batch_size)
 
-        # Denormal floats flushed to zero: the same weights, many times faster where the optimizer's averages decay.
+        # Denormal floats flushed to zero: the optimizer's decaying averages leave the CPU's slow path for them.
         with denormals_flushed(device):
             losses = []
             for iteration in range(gradient_steps):

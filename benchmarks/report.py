@@ -28,6 +28,7 @@ from benchmarks.run import (
     DEFAULT_HELD_OUT,
     DEFAULT_RESULTS,
     REPO_ROOT,
+    hardware,
     read_results,
 )
 
@@ -255,20 +256,21 @@ def steps_ratio(num: Cell, den: Cell, low: float, high: float, ci_below: float =
 def side_by_side(records: Sequence[dict[str, Any]], env: str, algos: Sequence[str]) -> list[Cell] | None:
     """
     :return: a cell per algo of its runs on ``env`` trained to the budget by runner commands that ran all of ``algos``
-        (same machine, same session), pooled over such commands at the finest evaluation period any of them used (the
-        finer grid measures the steps to solve more closely; periods are never mixed; a seed run twice keeps its first
-        run), on the seeds every algo ran; ``None`` if no command ran them all
+        on one hardware (:func:`benchmarks.run.hardware`: a command resumed on another CPU is another run, since
+        seconds of two CPUs do not compare), pooled over such runs at the finest evaluation period any of them used
+        (the finer grid measures the steps to solve more closely; periods are never mixed; a seed run twice keeps its
+        first run), on the seeds every algo ran; ``None`` if no command ran them all
     """
-    by_command: dict[tuple[str, int], dict[str, dict[int, dict[str, Any]]]] = {}
+    by_command: dict[tuple[str, str, int], dict[str, dict[int, dict[str, Any]]]] = {}
     for record in records:
         if record["env"] == env and record["algo"] in algos and not record.get("stop_at_solve"):
-            command = (record["command"], int(record["eval_every"]))
+            command = (record["command"], hardware(record["machine"]), int(record["eval_every"]))
             by_seed = by_command.setdefault(command, {algo: {} for algo in algos})[record["algo"]]
             by_seed.setdefault(int(record["seed"]), record)
     complete = {command: runs for command, runs in by_command.items() if all(runs.values())}
-    finest = min((period for _, period in complete), default=None)
+    finest = min((period for *_, period in complete), default=None)
     pooled: dict[str, dict[int, dict[str, Any]]] = {algo: {} for algo in algos}
-    for runs in (runs for (_, period), runs in complete.items() if period == finest):
+    for runs in (runs for (*_, period), runs in complete.items() if period == finest):
         for algo in algos:
             pooled[algo] = runs[algo] | pooled[algo]
     seeds = sorted(set.intersection(*(set(runs) for runs in pooled.values())))
@@ -545,8 +547,8 @@ def build_report(records: Sequence[dict[str, Any]], book: dict[str, Cell], held_
         f"From `{TARGETS_FILE.relative_to(REPO_ROOT)}`; the shipped config of each env (`benchmarks.configs.SHIPPED`): "
         + ", ".join(f"{env} {algo}" for env, algo in configs.SHIPPED.items() if env in configs.ENVS)
         + f". Peers: {', '.join(configs.ZOO_PEERS)}, with `sb3_nfq.KeepBestCallback` (`-keep-best`) where the shipped "
-        "config ends on its best fit. Held-out runs side by side: runs of one runner command, pooled over commands at "
-        "the finest evaluation period they ran.",
+        "config ends on its best fit. Held-out runs side by side: runs of one runner command on one hardware (CPU "
+        "model, cores, memory), pooled over such runs at the finest evaluation period they ran.",
         "",
         pd.DataFrame(
             [(*reading, ", ".join(f"[{numbers[c]}]" for c in cmds)) for *reading, cmds in readings],

@@ -70,6 +70,14 @@ def machine_line() -> str:
     return f"{model}, {usable_cores()} cores ({platform.machine()}){memory}, {platform.system()} {platform.release()}"
 
 
+def hardware(machine: str) -> str:
+    """
+    :param machine: a :func:`machine_line`
+    :return: its hardware (CPU model, cores, memory), without the OS release, which alike machines change between boots
+    """
+    return machine.rsplit(", ", 1)[0]
+
+
 def package_versions() -> dict[str, str]:
     """:return: versions of the packages a result depends on"""
     versions = {"python": platform.python_version()}
@@ -474,11 +482,16 @@ def run_jobs(
     :param results: the results file (JSON lines)
     :param workers: local worker processes (0: run in this process); at most the number of cores
     :param ray_address: run as Ray tasks on this cluster (``local``, ``auto`` or an address) instead
-    :param rerun: skip only the jobs this same command line has recorded: to run a baseline side by side again
+    :param rerun: skip only the jobs this same command line has recorded on this hardware (:func:`hardware`): to run
+        a baseline side by side again, or the whole run again on other hardware, whose seconds do not compare
     :return: (jobs run, jobs skipped as already done, jobs failed)
     """
-    commands = {job.command for job in jobs}
-    done = {result_key(record) for record in read_results(results) if not rerun or record["command"] in commands}
+    commands, here = {job.command for job in jobs}, hardware(machine_line())
+
+    def recorded_alike(record: dict[str, Any]) -> bool:
+        return record["command"] in commands and hardware(record.get("machine", "")) == here
+
+    done = {result_key(record) for record in read_results(results) if not rerun or recorded_alike(record)}
     todo = [job for job in jobs if job.key not in done]
     if workers > usable_cores():
         print(f"warning: {workers} workers on {usable_cores()} cores would distort timings", file=sys.stderr)
@@ -533,7 +546,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=min(2, usable_cores()), help="processes (0: this one)")
     parser.add_argument("--results", type=Path, help="JSON-lines file (default: runs.jsonl or book_protocol.jsonl)")
     parser.add_argument("--ray-address", help="run the jobs as Ray tasks: 'local', 'auto' or a cluster address")
-    parser.add_argument("--rerun", action="store_true", help="skip only the jobs this exact command has recorded")
+    parser.add_argument(
+        "--rerun", action="store_true", help="skip only the jobs this exact command has recorded on this hardware"
+    )
     args = parser.parse_args(argv)
     if args.workers < 0:
         parser.error(f"--workers must be >= 0, got {args.workers}")

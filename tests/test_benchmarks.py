@@ -211,6 +211,22 @@ def test_runner_reads_seed_ranges_appends_and_resumes(tmp_path: Path, capsys: py
         run.main(argv[2:])
 
 
+def test_a_rerun_skips_only_what_its_command_recorded_on_this_hardware(tmp_path: Path) -> None:
+    assert run.hardware("AMD EPYC, 2 cores (x86_64), 24 GiB RAM, Linux 6.18.44-fc-v1300") == (
+        "AMD EPYC, 2 cores (x86_64), 24 GiB RAM"
+    )
+    results = tmp_path / "runs.jsonl"
+    argv = ["--algos", "reference-nfq", "--envs", "CartPole-v1", "--seeds", "0", "--budget", "1024"]
+    argv += ["--eval-episodes", "2", "--workers", "0", "--rerun", "--results", str(results)]
+    assert run.main(argv) == 0 and run.main(argv) == 0 and len(run.read_results(results)) == 1
+    (record,) = run.read_results(results)
+    other_release = {**record, "machine": f"{run.hardware(record['machine'])}, Linux 0.0-another-boot"}
+    other_cpu = {**record, "machine": "Another CPU, 2 cores (x86_64), 24 GiB RAM, Linux 0.0"}
+    for recorded, lines_after in ((other_release, 1), (other_cpu, 2)):  # skipped; run again
+        results.write_text(json.dumps(recorded) + "\n")
+        assert run.main(argv) == 0 and len(run.read_results(results)) == lines_after
+
+
 def test_recorded_commands_name_paths_inside_the_repository_relative_to_it(tmp_path: Path) -> None:
     inside = str(run.REPO_ROOT / "benchmarks" / "results" / "runs.jsonl")
     command = run.relative_command("benchmarks.run", ["--results", inside, "--x", str(tmp_path)])
@@ -314,6 +330,22 @@ def test_side_by_side_pools_the_commands_at_the_finest_evaluation_period_on_the_
     assert {r["seed"] for r in records if r["algo"] in algos[:2]} == {5, 6, 7}
     cells = report.side_by_side(records, "LunarLander-v3", algos)
     assert cells is not None and [[r["seed"] for r in cell.runs] for cell in cells] == [[5, 6]] * 3
+
+
+def test_side_by_side_never_pools_one_command_across_hardware(held_out: list[dict[str, Any]]) -> None:
+    # the MountainCar entry's held-out runs: two commands (seeds 5-9, 10-14), each running the entry and both peers
+    algos = [RECORDED_MOUNTAIN_CAR, "dqn-zoo", "qrdqn-zoo"]
+
+    def seeds_judged_with_the_entrys_first_five_on(machine: str) -> list[int]:
+        moved = [r | {"machine": machine} if r["algo"] == algos[0] and r["seed"] < 10 else r for r in held_out]
+        cells = report.side_by_side(moved, "MountainCar-v0", algos)
+        assert cells is not None and len({tuple(r["seed"] for r in cell.runs) for cell in cells}) == 1
+        return [r["seed"] for r in cells[0].runs]
+
+    (machine,) = {r["machine"] for r in held_out if r["algo"] == algos[0]}
+    assert seeds_judged_with_the_entrys_first_five_on(machine) == list(range(5, 15))
+    assert seeds_judged_with_the_entrys_first_five_on(f"{run.hardware(machine)}, Linux 0.0") == list(range(5, 15))
+    assert seeds_judged_with_the_entrys_first_five_on("Another CPU, 2 cores, 24 GiB RAM, Linux 0.0") == [*range(10, 15)]
 
 
 def test_readme_table_shows_the_held_out_rows_their_budgets_and_how_many_seeds_have_run(

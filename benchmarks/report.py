@@ -47,7 +47,8 @@ BOOK_MEAN_STEPS = 233_918
 BOOK_MEAN_EPISODES = 2_344
 #: The fidelity pair: sb3_nfq.NFQ with its textbook defaults, and the plain-PyTorch textbook NFQ.
 BOOK_PAIR = ("nfq-book", "reference-nfq")
-GROUP_KEYS = ["env", "algo", "budget", "config_hash"]
+#: What the runs of one table row share (hardware: :func:`benchmarks.run.hardware`; seconds of two CPUs do not compare).
+GROUP_KEYS = ["env", "algo", "budget", "config_hash", "hardware"]
 
 
 def iqm_with_ci(values: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
@@ -104,6 +105,8 @@ class Cell:
         self.runs, self.n = runs, len(runs)
         self.env, self.algo = runs[0]["env"], runs[0]["algo"]
         self.budget, self.config_hash = int(runs[0]["budget"]), runs[0]["config_hash"]
+        #: The CPU model(s) the runs ran on (the first field of :func:`benchmarks.run.hardware`).
+        self.cpu = "; ".join(dict.fromkeys(hardware(run["machine"]).split(", ")[0] for run in runs))
         self.stop_at_solve = any(run.get("stop_at_solve") for run in runs)
         self.eval_every = max(int(run["eval_every"]) for run in runs)
         #: Steps to solve per run (unsolved: the steps trained), and whether each is censored (unsolved).
@@ -173,12 +176,13 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     """
     :param records: result lines (runs of retired configs, or of settings a name no longer holds, are left out: the
         results files keep them with their settings)
-    :return: env -> cells in :func:`configs.algorithm_names` order; a seed recorded twice in a cell keeps its last line
+    :return: env -> cells (one per config, budget and hardware: a row never mixes CPUs) in
+        :func:`configs.algorithm_names` order; a seed recorded twice in a cell keeps its last line
     """
     current = [record for record in records if is_current(record)]
     if not current:
         return {}
-    frame = pd.DataFrame(current)[[*GROUP_KEYS, "seed"]].assign(record=current)
+    frame = pd.DataFrame(current).assign(hardware=[hardware(r["machine"]) for r in current], record=current)
     cells = []
     for _, group in frame.drop_duplicates([*GROUP_KEYS, "seed"], keep="last").groupby(GROUP_KEYS, sort=False):
         cells.append(Cell(sorted(group["record"], key=lambda run: int(run["seed"]))))
@@ -203,6 +207,7 @@ def env_table(cells: Sequence[Cell]) -> str:
             {
                 "algorithm": cell.algo,
                 "seeds": _seeds(cell.runs),
+                "CPU": cell.cpu,
                 "budget": f"{cell.budget:,}",
                 "evaluated every": f"{cell.eval_every:,} steps" + (" (stopped at solve)" if cell.stop_at_solve else ""),
                 "success": f"{np.mean(~cell.censored):.0%}" + (f" ({diverged} diverged)" if diverged else ""),
@@ -337,8 +342,10 @@ def held_out_targets(
             rows.append((claims[1], "met" if met else "not met", text, commands))
             seconds = [float(np.median(cell.column("train_seconds"))) for cell in cells]
             ratio = seconds[0] / seconds[1]
-            launcher = _joined([run for cell in cells for run in cell.runs], "launcher")
-            text = f"{ratio:.3f} ({seconds[0]:.1f} s / {seconds[1]:.1f} s, {launcher}); to the solve, median: "
+            runs = [run for cell in cells for run in cell.runs]
+            machines = "; ".join(dict.fromkeys(hardware(run["machine"]) for run in runs))
+            text = f"{ratio:.3f} ({seconds[0]:.1f} s / {seconds[1]:.1f} s, {_joined(runs, 'launcher')}, {machines}); "
+            text += "to the solve, median: "
             text += " vs ".join(f"{cell.algo} {cell.solve_seconds()}" for cell in cells)
             rows.append((claims[2], "met" if ratio <= goal["seconds_ratio"] else "not met", text, commands))
         claim = f"{env}: {configs.ONE_CONFIG} (one config) solves in ≥ {one['solved_at_least']}/{n_seeds} seeds, at "

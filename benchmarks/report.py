@@ -462,7 +462,8 @@ def comparison_row(cells: Sequence[Cell], seeds: str) -> dict[str, str]:
         "budget": budgets[0] if len(set(budgets)) == 1 else " vs ".join(budgets),
         "steps to solve: median": " vs ".join(_steps(*cell.steps_quantile(50)) for cell in cells),
         "final score ≥ threshold": " vs ".join(f"{cell.n_at_threshold()}/{cell.n}" for cell in cells),
-        "train s: median": " vs ".join(f"{np.median(cell.column('train_seconds')):.0f}" for cell in cells),
+        "train s: median (CPU)": " vs ".join(f"{np.median(cell.column('train_seconds')):.0f}" for cell in cells)
+        + f" ({'; '.join(dict.fromkeys(cell.cpu for cell in cells))})",
         "command": "; ".join(f"`{command}`" for command in _commands(cells)),
     }
 

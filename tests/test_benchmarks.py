@@ -359,6 +359,7 @@ def test_readme_table_shows_the_held_out_rows_their_budgets_and_how_many_seeds_h
     all_seeds, book_row = rows["MountainCar-v0"], rows["CartPole-v1, the book's criterion"]
     assert "5-14 (held out)" in all_seeds and "40,448 vs 92,160 vs 99,328" in all_seeds
     assert "8/10 vs 3/10 vs 6/10" in all_seeds
+    assert "| 451 vs 320 vs 429 (AMD EPYC) " in all_seeds  # seconds name the CPU they were measured on
     assert "330,964 vs 320,831" in book_row and "--protocol book" in book_row
     assert "| 120,000 " in all_seeds and "| 500,000 " in book_row  # one budget where every algorithm ran the same
     shorter = [r | {"budget": 80_000} if r["algo"] == configs.SHIPPED["MountainCar-v0"] else r for r in held_out]

@@ -182,7 +182,8 @@ def build_cells(records: Sequence[dict[str, Any]]) -> dict[str, list[Cell]]:
     current = [record for record in records if is_current(record)]
     if not current:
         return {}
-    frame = pd.DataFrame(current).assign(hardware=[hardware(r["machine"]) for r in current], record=current)
+    keys = [{"hardware": hardware(r["machine"]), **r} for r in current]
+    frame = pd.DataFrame(keys, columns=[*GROUP_KEYS, "seed"]).assign(record=current)
     cells = []
     for _, group in frame.drop_duplicates([*GROUP_KEYS, "seed"], keep="last").groupby(GROUP_KEYS, sort=False):
         cells.append(Cell(sorted(group["record"], key=lambda run: int(run["seed"]))))

@@ -137,7 +137,8 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
         linearly to 0 at the budget, written as the zoo's ``"lin_<x>"``), and ``fit_cost`` (see :data:`FIT_COST`),
         which with ``memory`` sets ``gradient_steps``, ``buffer_size`` and the round schedule; a stored trial's
         ``fit_epochs`` (searched in studies of the past) groups those epochs into iterations
-    :return: NFQ keyword arguments, with ``net_arch`` and ``optimizer_class`` in ``policy_kwargs``
+    :return: NFQ keyword arguments, with ``net_arch`` and ``optimizer_class`` in ``policy_kwargs`` (one Q-network:
+        ``exploration_ucb`` is ``None`` then, over an ensemble entry's)
     """
     hyperparams = dict(sampled_params)
     if hyperparams.pop("lr_schedule", "constant") == "linear":  # the zoo's format, which `--trial-id` reads
@@ -160,8 +161,8 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
         policy_kwargs["net_arch"] = list(NET_ARCHS[hyperparams.pop("net_arch")])
     if "optimizer" in hyperparams:
         policy_kwargs["optimizer_class"] = OPTIMIZERS[hyperparams.pop("optimizer")]
-    if policy_kwargs:
-        hyperparams["policy_kwargs"] = policy_kwargs
+    if policy_kwargs:  # they replace the entry's policy_kwargs, n_critics too: one Q-network, so no optimism
+        hyperparams |= {"policy_kwargs": policy_kwargs, "exploration_ucb": None}
     return hyperparams
 
 

@@ -169,6 +169,7 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             assert model.exploration_repeat_mu == trial.params["exploration_repeat_mu"]
             assert model.exploration_start == trial.params["exploration_start"]  # over Acrobot's entry's too
             assert model.n_steps == trial.params["n_steps"]  # over LunarLander's entry's n_steps too
+            assert (model.policy.n_critics, model.exploration_ucb) == (1, None)  # over LunarLander's ensemble too
             memory_size = trial.params.get("buffer_size", trial.params["train_freq"])
             epochs = max(1, round(trial.params["fit_cost"] * trial.params["train_freq"] / memory_size))
             assert (model.gradient_steps, model.fit_epochs) == (epochs, 1)
@@ -187,6 +188,7 @@ def test_a_study_stored_before_the_growing_memory_was_searched_converts_as_it_di
         "train_freq": 512,
         "loss": "huber",
         "policy_kwargs": {"net_arch": [64, 64]},
+        "exploration_ucb": None,  # one network, as every study before n_critics had
     }
 
 

@@ -53,6 +53,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-iteration-10k-n-step-3",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3-critics-2-ucb-3",
+    "nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3-critics-2-ucb-3-iteration-10k",
 )
 #: The benchmark config each entry of the shipped sb3_nfq/hyperparams/nfq.yml was measured as.
 SHIPPED: dict[str, str] = {

@@ -135,8 +135,9 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     :param sampled_params: raw sampled values: NFQ keyword arguments, plus ``net_arch`` and ``optimizer`` as names
         from :data:`NET_ARCHS` and :data:`OPTIMIZERS`, ``lr_schedule`` (``"linear"``: ``learning_rate`` decays
         linearly to 0 at the budget, written as the zoo's ``"lin_<x>"``), and ``fit_cost`` (see :data:`FIT_COST`),
-        which with ``memory`` sets ``gradient_steps``, ``buffer_size`` and the round schedule; a stored trial's
-        ``fit_epochs`` (searched in studies of the past) groups those epochs into iterations
+        which with ``memory`` sets ``gradient_steps``, ``buffer_size`` and the round schedule, each iteration over
+        the whole memory (``iteration_transitions=None``); a stored trial's ``fit_epochs`` (searched in studies of the
+        past) groups those epochs into iterations
     :return: NFQ keyword arguments, with ``net_arch`` and ``optimizer_class`` in ``policy_kwargs`` (one Q-network:
         ``exploration_ucb`` is ``None`` then, over an ensemble entry's)
     """
@@ -154,6 +155,7 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
         hyperparams |= {"gradient_steps": round(epochs / per_iteration), "fit_epochs": per_iteration}
         hyperparams["buffer_size"] = memory_size if growing else None  # a fresh memory holds one round
         hyperparams |= {"round_fraction": None, "round_fraction_offset": 0}  # rounds of train_freq
+        hyperparams["iteration_transitions"] = None  # each iteration one epoch, over an entry's sampled fit
     if hyperparams.get("loss", "huber") != "huber":
         hyperparams["huber_delta"] = 1.0  # the default, over an entry's threshold for its Huber loss
     policy_kwargs: dict[str, Any] = {}

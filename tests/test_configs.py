@@ -42,8 +42,8 @@ def test_the_entries_are_the_configs_measured_for_them() -> None:
     assert (cartpole["round_fraction"], cartpole["round_fraction_offset"], cartpole["train_freq"]) == (0.4, 4000, 128)
     assert cartpole["batch_size"] == 128
     assert cartpole["callback"] == "sb3_nfq.KeepBestCallback" and "keep_best" not in cartpole
-    # LunarLander: nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3-critics-2-ucb-3; MountainCar's has one network and
-    # no optimism, and adds repeated random actions and sampled iterations
+    # LunarLander: nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3-critics-2-ucb-3-iteration-10k; MountainCar's has one
+    # network and no optimism, and adds repeated random actions
     lunar = read_entry("LunarLander-v3")
     assert (lunar["loss"], lunar["huber_delta"], lunar["learning_rate"], lunar["n_steps"]) == (
         "huber",
@@ -53,8 +53,7 @@ def test_the_entries_are_the_configs_measured_for_them() -> None:
     )
     assert (lunar.pop("exploration_ucb"), nfq_kwargs("LunarLander-v3")["policy_kwargs"]["n_critics"]) == (3.0, 2)
     one_network = {**lunar, "policy_kwargs": mountain_car["policy_kwargs"]}
-    repeats_and_samples = {"exploration_repeat_mu": 2.0, "iteration_transitions": 10000}
-    assert {**mountain_car, "n_timesteps": 0} == {**one_network, "n_timesteps": 0, **repeats_and_samples}
+    assert {**mountain_car, "n_timesteps": 0} == {**one_network, "n_timesteps": 0, "exploration_repeat_mu": 2.0}
     # Acrobot: nfq-front-loaded-batch-128-k12-first-termination-keep-best, CartPole's entry with 12 fitted iterations
     # per round and epsilon's schedule from the first termination
     acrobot_changes = {"gradient_steps": 12, "exploration_start": "first_termination"}

@@ -173,7 +173,7 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             memory_size = trial.params.get("buffer_size", trial.params["train_freq"])
             epochs = max(1, round(trial.params["fit_cost"] * trial.params["train_freq"] / memory_size))
             assert (model.gradient_steps, model.fit_epochs) == (epochs, 1)
-            assert model.iteration_transitions is None  # whole epochs, over MountainCar's entry's sampled fit too
+            assert model.iteration_transitions is None  # over MountainCar's and LunarLander's sampled fits too
             assert model.round_fraction is None
         assert model.lr_schedule(1.0) == pytest.approx(rate) and model.lr_schedule(0.0) == (0.0 if linear else rate)
         study.tell(trial, 0.0)

@@ -81,13 +81,20 @@ CATEGORICAL_SPACE: dict[str, tuple[bool | int | float | str | None, ...]] = {
 }
 #: ``buffer_size`` choices, sampled for ``memory="growing"`` only (a fresh memory holds one round).
 BUFFER_SIZES = (10_000, 20_000, 50_000)
+#: ``iteration_transitions`` choices, sampled for ``memory="growing"`` only (a fresh memory holds one round): each
+#: fitted iteration over the whole memory (the book), or over that many of its transitions drawn at random.
+ITERATION_TRANSITIONS = (None, 5_000, 10_000)
 #: ``huber_delta`` choices, sampled for ``loss="huber"`` only.
 HUBER_DELTAS = (1.0, 5.0, 10.0)
-#: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * M / train_freq``
-#: with ``M`` the memory (one round; or ``buffer_size``, which a growing memory fills). It sets a round's epochs over
-#: the memory, rounded and at least 1, so a trial's compute per env step (the book's: 40; the benchmark's
-#: growing-memory configs: 156 to 195) is its ``fit_cost`` rounded to a whole multiple of ``M / train_freq``, and at
-#: least ``M / train_freq``.
+#: ``policy_kwargs["n_critics"]`` choices: one Q-network (the book), or an ensemble (LunarLander's entry).
+N_CRITICS = (1, 2)
+#: ``exploration_ucb`` choices, sampled for an ensemble only (``n_critics`` above 1).
+EXPLORATION_UCBS = (None, 1.0, 3.0)
+#: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * N / train_freq``
+#: with ``N`` a fitted iteration's transitions: the memory (one round; or ``buffer_size``, which a growing memory
+#: fills), or ``iteration_transitions`` where that is fewer. It sets a round's fitted iterations, rounded and at least
+#: 1, so a trial's compute per env step and Q-network (the book's: 40) is its ``fit_cost`` rounded to a whole multiple
+#: of ``N / train_freq``, and at least ``N / train_freq``.
 FIT_COST = (5.0, 250.0)
 
 
@@ -121,6 +128,10 @@ def sample_nfq_params(
         sampled[name] = trial.suggest_categorical(name, choices)
     if sampled["memory"] == "growing":
         sampled["buffer_size"] = trial.suggest_categorical("buffer_size", BUFFER_SIZES)
+        sampled["iteration_transitions"] = trial.suggest_categorical("iteration_transitions", ITERATION_TRANSITIONS)
+    sampled["n_critics"] = trial.suggest_categorical("n_critics", N_CRITICS)
+    if sampled["n_critics"] > 1:
+        sampled["exploration_ucb"] = trial.suggest_categorical("exploration_ucb", EXPLORATION_UCBS)
     if sampled["loss"] == "huber":
         sampled["huber_delta"] = trial.suggest_categorical("huber_delta", HUBER_DELTAS)
     # The zoo applies the sampled values after turning its file's "lin_<x>" strings into schedules: do it here.
@@ -132,14 +143,16 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     Turn sampled values (``trial.params``) into NFQ keyword arguments, as the zoo's ``HYPERPARAMS_CONVERTER``
     entries do: it is also how ``train --storage ... --study-name ... --trial-id N`` trains with a stored trial.
 
-    :param sampled_params: raw sampled values: NFQ keyword arguments, plus ``net_arch`` and ``optimizer`` as names
-        from :data:`NET_ARCHS` and :data:`OPTIMIZERS`, ``lr_schedule`` (``"linear"``: ``learning_rate`` decays
-        linearly to 0 at the budget, written as the zoo's ``"lin_<x>"``), and ``fit_cost`` (see :data:`FIT_COST`),
-        which with ``memory`` sets ``gradient_steps``, ``buffer_size`` and the round schedule, each iteration over
-        the whole memory (``iteration_transitions=None``); a stored trial's ``fit_epochs`` (searched in studies of the
-        past) groups those epochs into iterations
-    :return: NFQ keyword arguments, with ``net_arch`` and ``optimizer_class`` in ``policy_kwargs`` (one Q-network:
-        ``exploration_ucb`` is ``None`` then, over an ensemble entry's)
+    :param sampled_params: raw sampled values: NFQ keyword arguments, plus ``net_arch``, ``optimizer`` and
+        ``n_critics`` for ``policy_kwargs`` (the first two as names from :data:`NET_ARCHS` and :data:`OPTIMIZERS`),
+        ``lr_schedule`` (``"linear"``: ``learning_rate`` decays linearly to 0 at the budget, written as the zoo's
+        ``"lin_<x>"``), and ``fit_cost`` (see :data:`FIT_COST`), which with ``memory`` and ``iteration_transitions``
+        (``None`` where not sampled: studies of the past fitted the whole memory) sets ``gradient_steps``,
+        ``buffer_size`` and the round schedule; a stored trial's ``fit_epochs`` (searched in studies of the past)
+        groups a round's epochs into iterations
+    :return: NFQ keyword arguments, with ``net_arch``, ``optimizer_class`` and ``n_critics`` in ``policy_kwargs``
+        (``exploration_ucb`` is ``None`` where not sampled, over an ensemble entry's: studies of the past had one
+        Q-network)
     """
     hyperparams = dict(sampled_params)
     if hyperparams.pop("lr_schedule", "constant") == "linear":  # the zoo's format, which `--trial-id` reads
@@ -147,15 +160,16 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     if "fit_cost" in hyperparams:
         growing = hyperparams["memory"] == "growing"
         memory_size = hyperparams["buffer_size"] if growing else hyperparams["train_freq"]
-        # The round's epochs over the memory, one per iteration. A trial stored with fit_epochs ran them grouped into
-        # whole iterations of at most fit_epochs epochs each (the rounding fits 0.73x to 1.33x the round's epochs):
-        # it converts as it ran.
-        epochs = max(1, round(hyperparams.pop("fit_cost") * hyperparams["train_freq"] / memory_size))
+        hyperparams["iteration_transitions"] = hyperparams.get("iteration_transitions")  # over an entry's
+        iteration_size = min(hyperparams["iteration_transitions"] or memory_size, memory_size)
+        # The round's fitted iterations, one epoch of iteration_size transitions each. A trial stored with fit_epochs
+        # (whole memory) ran them grouped into whole iterations of at most fit_epochs epochs each (the rounding fits
+        # 0.73x to 1.33x the round's epochs): it converts as it ran.
+        epochs = max(1, round(hyperparams.pop("fit_cost") * hyperparams["train_freq"] / iteration_size))
         per_iteration = min(hyperparams.get("fit_epochs", 1), epochs)  # so at least one iteration
         hyperparams |= {"gradient_steps": round(epochs / per_iteration), "fit_epochs": per_iteration}
         hyperparams["buffer_size"] = memory_size if growing else None  # a fresh memory holds one round
         hyperparams |= {"round_fraction": None, "round_fraction_offset": 0}  # rounds of train_freq
-        hyperparams["iteration_transitions"] = None  # each iteration one epoch, over an entry's sampled fit
     if hyperparams.get("loss", "huber") != "huber":
         hyperparams["huber_delta"] = 1.0  # the default, over an entry's threshold for its Huber loss
     policy_kwargs: dict[str, Any] = {}
@@ -163,8 +177,11 @@ def convert_nfq_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
         policy_kwargs["net_arch"] = list(NET_ARCHS[hyperparams.pop("net_arch")])
     if "optimizer" in hyperparams:
         policy_kwargs["optimizer_class"] = OPTIMIZERS[hyperparams.pop("optimizer")]
-    if policy_kwargs:  # they replace the entry's policy_kwargs, n_critics too: one Q-network, so no optimism
-        hyperparams |= {"policy_kwargs": policy_kwargs, "exploration_ucb": None}
+    if "n_critics" in hyperparams:
+        policy_kwargs["n_critics"] = hyperparams.pop("n_critics")
+    if policy_kwargs:  # they replace the entry's policy_kwargs (its n_critics too), so its optimism goes as well
+        hyperparams["policy_kwargs"] = policy_kwargs
+        hyperparams["exploration_ucb"] = hyperparams.get("exploration_ucb")
     return hyperparams
 
 

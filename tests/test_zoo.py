@@ -24,8 +24,13 @@ from sb3_nfq import NFQ
 from sb3_nfq.configs import ZOO_FILE, nfq_kwargs, read_entry, zoo_to_kwargs
 from sb3_nfq.zoo import (
     ALGO_NAME,
+    BUFFER_SIZES,
     CATEGORICAL_SPACE,
     DEFAULT_CONF_FILE,
+    EXPLORATION_UCBS,
+    HUBER_DELTAS,
+    ITERATION_TRANSITIONS,
+    N_CRITICS,
     NET_ARCHS,
     OPTIMIZERS,
     convert_nfq_params,
@@ -147,6 +152,7 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
         assert converted["learning_rate"] == (f"lin_{rate!r}" if linear else rate)
         assert repr(converted | {"learning_rate": 0}) == repr(hyperparams | {"learning_rate": 0})
         growing, huber = trial.params["memory"] == "growing", trial.params["loss"] == "huber"
+        ensemble = trial.params["n_critics"] > 1
         assert set(trial.params) == {
             "learning_rate",
             "lr_schedule",
@@ -156,9 +162,11 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             "exploration_fraction",
             "net_arch",
             "optimizer",
+            "n_critics",
             *CATEGORICAL_SPACE,
-            *(["buffer_size"] if growing else []),
+            *(["buffer_size", "iteration_transitions"] if growing else []),
             *(["huber_delta"] if huber else []),
+            *(["exploration_ucb"] if ensemble else []),
         }
         assert trial.user_attrs["worker"] == f"{socket.gethostname()}:{os.getpid()}"
         for env_id, entry in entries.items():  # the zoo puts the sampled values over the env's entry
@@ -169,16 +177,71 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
             assert model.exploration_repeat_mu == trial.params["exploration_repeat_mu"]
             assert model.exploration_start == trial.params["exploration_start"]  # over Acrobot's entry's too
             assert model.n_steps == trial.params["n_steps"]  # over LunarLander's entry's n_steps too
-            assert (model.policy.n_critics, model.exploration_ucb) == (1, None)  # over LunarLander's ensemble too
+            assert model.policy.n_critics == trial.params["n_critics"]  # over LunarLander's ensemble too
+            assert model.exploration_ucb == trial.params.get("exploration_ucb")  # None for one network
+            iteration_transitions = trial.params.get("iteration_transitions")  # over MountainCar's sampled fit too
+            assert model.iteration_transitions == iteration_transitions
             memory_size = trial.params.get("buffer_size", trial.params["train_freq"])
-            epochs = max(1, round(trial.params["fit_cost"] * trial.params["train_freq"] / memory_size))
+            iteration_size = min(iteration_transitions or memory_size, memory_size)
+            epochs = max(1, round(trial.params["fit_cost"] * trial.params["train_freq"] / iteration_size))
             assert (model.gradient_steps, model.fit_epochs) == (epochs, 1)
-            assert model.iteration_transitions is None  # over MountainCar's and LunarLander's sampled fits too
             assert model.round_fraction is None
         assert model.lr_schedule(1.0) == pytest.approx(rate) and model.lr_schedule(0.0) == (0.0 if linear else rate)
         study.tell(trial, 0.0)
     assert {trial.params["batch_size"] for trial in study.trials} == set(CATEGORICAL_SPACE["batch_size"])
     assert {trial.params["memory"] for trial in study.trials} == {"fresh", "growing"}
+    assert {trial.params.get("iteration_transitions") for trial in study.trials} == set(ITERATION_TRANSITIONS)
+    assert {trial.params["n_critics"] for trial in study.trials} == set(N_CRITICS)
+    assert {trial.params.get("exploration_ucb", 0) for trial in study.trials} == {0, *EXPLORATION_UCBS}
+
+
+def test_lunarlanders_shipped_entry_is_a_point_of_the_search_space() -> None:
+    # A study can queue the entry it tunes from, and a trial can reach it: its sampled fit and its ensemble included.
+    entry = read_entry("LunarLander-v3", DEFAULT_CONF_FILE)
+    assert entry["learning_rate"] == "lin_0.004" and entry["train_freq"] == 128
+    point = {
+        "learning_rate": 0.004,
+        "lr_schedule": "linear",
+        "fit_cost": entry["iteration_transitions"] / entry["train_freq"],  # one iteration per round
+        "exploration_initial_eps": entry["exploration_initial_eps"],
+        "exploration_final_eps": entry["exploration_final_eps"],
+        "exploration_fraction": entry["exploration_fraction"],
+        "net_arch": "medium",
+        "optimizer": "adam",
+        "n_critics": 2,
+        "exploration_ucb": entry["exploration_ucb"],
+        "train_freq": entry["train_freq"],
+        "memory": "growing",
+        "buffer_size": entry["buffer_size"],
+        "iteration_transitions": entry["iteration_transitions"],
+        "target_mode": entry["target_mode"],
+        "gamma": entry["gamma"],
+        "batch_size": entry["batch_size"],
+        "loss": "huber",
+        "huber_delta": entry["huber_delta"],
+        "max_grad_norm": entry["max_grad_norm"],
+        "exploration_repeat_mu": None,
+        "exploration_start": "first_step",
+        "n_steps": entry["n_steps"],
+    }
+    for name, choices in {
+        **CATEGORICAL_SPACE,
+        "buffer_size": BUFFER_SIZES,
+        "iteration_transitions": ITERATION_TRANSITIONS,
+        "huber_delta": HUBER_DELTAS,
+        "n_critics": N_CRITICS,
+        "exploration_ucb": EXPLORATION_UCBS,
+    }.items():
+        assert point[name] in choices, name
+    entry_model = NFQ("MlpPolicy", "LunarLander-v3", **nfq_kwargs("LunarLander-v3"))
+    point_model = NFQ("MlpPolicy", "LunarLander-v3", **zoo_to_kwargs(convert_nfq_params(point)))
+    for name in ("gradient_steps", "fit_epochs", "iteration_transitions", "buffer_size", "exploration_ucb", "n_steps"):
+        assert getattr(point_model, name) == getattr(entry_model, name), name
+    assert point_model.policy.n_critics == entry_model.policy.n_critics == 2
+    assert point_model.policy.net_arch == entry_model.policy.net_arch
+    assert type(point_model.policy.optimizer) is type(entry_model.policy.optimizer)
+    for progress in (1.0, 0.5):
+        assert point_model.lr_schedule(progress) == pytest.approx(entry_model.lr_schedule(progress))
 
 
 def test_a_study_stored_before_the_growing_memory_was_searched_converts_as_it_did() -> None:

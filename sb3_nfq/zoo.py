@@ -99,7 +99,7 @@ FIT_COST = (5.0, 250.0)
 
 
 def sample_nfq_params(
-    trial: "optuna.Trial", n_actions: int, n_envs: int, additional_args: dict[str, Any]
+    trial: "optuna.trial.BaseTrial", n_actions: int, n_envs: int, additional_args: dict[str, Any]
 ) -> dict[str, Any]:
     """
     Sampler for NFQ hyperparameters, with the signature of the zoo's ``HYPERPARAMS_SAMPLER`` entries.
@@ -107,7 +107,7 @@ def sample_nfq_params(
     It also records which process ran the trial (``trial.user_attrs["worker"]``, ``"<hostname>:<pid>"``),
     which shows how the workers of a shared study (``--storage``) divided the trials.
 
-    :param trial: the Optuna trial to sample from
+    :param trial: the Optuna trial to sample from (a ``FixedTrial`` gives a chosen point)
     :param n_actions: number of continuous actions (unused: NFQ has Discrete actions)
     :param n_envs: number of environments (unused: ``train_freq`` counts transitions over all envs)
     :param additional_args: the zoo's extra arguments (HER settings; unused)

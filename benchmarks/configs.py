@@ -54,6 +54,7 @@ NFQ_CONFIG_NAMES = (
     "nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3-critics-2-ucb-3",
     "nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3-critics-2-ucb-3-iteration-10k",
+    "nfq-LunarLander-v3-30k-trial-119",
 )
 #: The benchmark config each entry of the shipped sb3_nfq/hyperparams/nfq.yml was measured as.
 SHIPPED: dict[str, str] = {

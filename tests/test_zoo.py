@@ -193,6 +193,7 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
     assert {trial.params.get("exploration_ucb", 0) for trial in study.trials} == {0, *EXPLORATION_UCBS}
 
 
+@pytest.mark.filterwarnings("error:The value:UserWarning")  # FixedTrial's warning on a number outside its range
 def test_lunarlanders_shipped_entry_is_a_point_of_the_search_space() -> None:
     # A study can queue the entry it tunes from, and a trial can reach it: its sampled fit and its ensemble included.
     entry = read_entry("LunarLander-v3", DEFAULT_CONF_FILE)
@@ -222,7 +223,8 @@ def test_lunarlanders_shipped_entry_is_a_point_of_the_search_space() -> None:
         "exploration_start": "first_step",
         "n_steps": entry["n_steps"],
     }
-    # The sampler itself, as a queued trial runs it: FixedTrial raises on a missing value or one outside its choices.
+    # The sampler itself, as a queued trial runs it: FixedTrial raises on a missing value or a category outside its
+    # choices, and warns (an error here) on a number outside its range.
     hyperparams = sample_nfq_params(FixedTrial(point), 0, 1, {"using_her_replay_buffer": False, "her_kwargs": {}})
     entry_model = NFQ("MlpPolicy", "LunarLander-v3", **nfq_kwargs("LunarLander-v3"))
     point_model = NFQ("MlpPolicy", "LunarLander-v3", **hyperparams)

@@ -13,8 +13,8 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.env_checker import check_env
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.monitor import Monitor
 
 from sb3_nfq import NFQ
 
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> float:
     model.learn(args.total_timesteps, progress_bar=True)
 
     _, episode_lengths = evaluate_policy(
-        model, Monitor(GridWorld()), n_eval_episodes=100, deterministic=True, return_episode_rewards=True
+        model, make_vec_env(GridWorld, seed=20_000), 100, deterministic=True, return_episode_rewards=True
     )
     assert isinstance(episode_lengths, list)
     success_rate = float(np.mean([length < GridWorld().max_steps for length in episode_lengths]))

@@ -16,8 +16,8 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import torch as th
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.monitor import Monitor
 
 from sb3_nfq import NFQ, TransitionDataset
 
@@ -79,9 +79,9 @@ def main(argv: list[str] | None = None) -> float:
     model = NFQ.for_dataset("MlpPolicy", dataset, seed=args.seed, **OFFLINE_NFQ)
     model.fit_offline(dataset, iterations=args.iterations)
 
-    lengths = evaluate_policy(model, Monitor(gym.make("CartPole-v1")), n_eval_episodes=20, return_episode_rewards=True)[
-        1
-    ]
+    # 20 episodes from seeded start states (env i's from seed args.seed + 20_000 + i)
+    eval_env = make_vec_env("CartPole-v1", n_envs=20, seed=args.seed + 20_000)
+    _, lengths = evaluate_policy(model, eval_env, n_eval_episodes=20, return_episode_rewards=True)
     assert isinstance(lengths, list)
     print(
         f"Greedy policy fitted offline: mean episode length {np.mean(lengths):.0f} over 20 episodes "

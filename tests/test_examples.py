@@ -113,13 +113,20 @@ def test_plot_learning_curve_example_writes_a_png(tmp_path: Path) -> None:
     assert (tmp_path / "evaluations.npz").is_file()
 
 
-def test_offline_minari_example_records_a_local_dataset_and_fits_it(tmp_path: Path) -> None:
-    pytest.importorskip("minari")
+def test_offline_minari_example_records_a_local_dataset_and_fits_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    minari = pytest.importorskip("minari")
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))  # the example sets it; restored after the test
     mean_length = _main("offline_minari.py")(
         ["--episodes", "5", "--iterations", "2", "--minari-dir", str(tmp_path / "minari")]
     )
-    assert mean_length >= 1
-    assert any((tmp_path / "minari").rglob("*.hdf5"))
+    printed = capsys.readouterr().out
+    dataset = minari.load_dataset("cartpole/uniform-random-v0")
+    assert dataset.total_episodes == 5 and any((tmp_path / "minari").rglob("*.hdf5"))
+    # the dataset it fits holds every recorded step
+    assert f"{dataset.total_steps} transitions from 5 random episodes" in printed
+    assert f"mean episode length {mean_length:.0f} over 20 episodes" in printed
 
 
 def test_growing_memory_example_keeps_every_transition(capsys: pytest.CaptureFixture[str]) -> None:

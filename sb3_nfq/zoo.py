@@ -68,7 +68,7 @@ OPTIMIZERS: dict[str, type[th.optim.Optimizer]] = {
 #: Categorical hyperparameters passed to NFQ as they are sampled: one row per NFQ keyword argument.
 #: Adding a row adds it to the search space.
 CATEGORICAL_SPACE: dict[str, tuple[bool | int | float | str | None, ...]] = {
-    "train_freq": (128, 256, 512, 1024, 2048, 4096),  # transitions per round (the book's E = 1024)
+    "train_freq": (64, 128, 256, 512, 1024, 2048, 4096),  # transitions per round (the book's E = 1024)
     "memory": ("fresh", "growing"),  # the book's, or the 2005 paper's (with a buffer_size below)
     "target_mode": ("recompute_every_step", "fixed_per_iteration"),
     "gamma": (0.95, 0.98, 0.99, 0.995, 0.999, 1.0),
@@ -87,7 +87,7 @@ ITERATION_TRANSITIONS = (None, 5_000, 10_000)
 #: ``huber_delta`` choices, sampled for ``loss="huber"`` only.
 HUBER_DELTAS = (1.0, 5.0, 10.0)
 #: ``policy_kwargs["n_critics"]`` choices: one Q-network (the book), or an ensemble (LunarLander's entry).
-N_CRITICS = (1, 2)
+N_CRITICS = (1, 2, 3)
 #: ``exploration_ucb`` choices, sampled for an ensemble only (``n_critics`` above 1).
 EXPLORATION_UCBS = (None, 1.0, 3.0)
 #: Range of ``fit_cost``: transitions fitted per transition collected, ``gradient_steps * N / train_freq``

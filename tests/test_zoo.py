@@ -6,6 +6,7 @@ process, which must not leak into the other tests. This module imports rl_zoo3 n
 """
 
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -24,9 +25,11 @@ from sb3_nfq import NFQ
 from sb3_nfq.configs import ZOO_FILE, nfq_kwargs, read_entry, zoo_to_kwargs
 from sb3_nfq.zoo import (
     ALGO_NAME,
+    BUFFER_SIZES,
     CATEGORICAL_SPACE,
     DEFAULT_CONF_FILE,
     EXPLORATION_UCBS,
+    HUBER_DELTAS,
     ITERATION_TRANSITIONS,
     N_CRITICS,
     NET_ARCHS,
@@ -46,6 +49,8 @@ SINGLE_THREAD_ENV = {
     "OPENBLAS_NUM_THREADS": "1",
 }
 TIMEOUT_S = 300
+#: The zoo's documentation page, whose table lists the search space.
+ZOO_PAGE = Path(__file__).parents[1] / "docs" / "zoo.md"
 #: Tiny tuning runs: trials of 1024 steps, evaluated once on 2 episodes, no plots.
 TINY_OPTIMIZE_ARGS = ["-optimize", "-n", "1024", "--n-evaluations", "1", "--eval-episodes", "2", "--no-optim-plots"]
 
@@ -191,6 +196,29 @@ def test_sampler_gives_valid_nfq_parameters_and_the_converter_rebuilds_them() ->
     assert {trial.params.get("iteration_transitions") for trial in study.trials} == set(ITERATION_TRANSITIONS)
     assert {trial.params["n_critics"] for trial in study.trials} == set(N_CRITICS)
     assert {trial.params.get("exploration_ucb", 0) for trial in study.trials} == {0, *EXPLORATION_UCBS}
+
+
+@pytest.mark.parametrize(
+    ("parameter", "choices"),
+    [
+        *((name, CATEGORICAL_SPACE[name]) for name in ("train_freq", "batch_size", "gamma", "n_steps")),
+        ("buffer_size", BUFFER_SIZES),
+        ("iteration_transitions", ITERATION_TRANSITIONS),
+        ("huber_delta", HUBER_DELTAS),
+        ("n_critics", N_CRITICS),
+        ("exploration_ucb", EXPLORATION_UCBS),
+    ],
+)
+def test_the_zoo_pages_search_space_table_lists_the_samplers_numeric_choices(
+    parameter: str, choices: tuple[Any, ...]
+) -> None:
+    rows = [row for row in ZOO_PAGE.read_text().splitlines() if row.startswith(f"| `{parameter}`")]
+    assert len(rows) == 1, parameter
+    listed = re.sub(r"\([^)]*\)", "", rows[0].split("|")[2])  # the choices, without the words in brackets
+    numbers = re.findall(r"\d{1,3}(?:,\d{3})+|\d+(?:\.\d+)?", listed)  # 10,000 is one number; "1, 5" two
+    assert sorted(float(number.replace(",", "")) for number in numbers) == sorted(
+        float(choice) for choice in choices if choice is not None
+    )
 
 
 @pytest.mark.filterwarnings("error:The value:UserWarning")  # FixedTrial's warning on a number outside its range

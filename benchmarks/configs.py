@@ -61,7 +61,7 @@ SHIPPED: dict[str, str] = {
     "CartPole-v1": "nfq-front-loaded-batch-128-keep-best",
     "Acrobot-v1": "nfq-front-loaded-batch-128-k12-first-termination-keep-best",
     "MountainCar-v0": "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-iteration-10k-n-step-3",
-    "LunarLander-v3": "nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3-critics-2-ucb-3-iteration-10k",
+    "LunarLander-v3": "nfq-LunarLander-v3-30k-trial-119",
     "default": "nfq-short-rounds-lr-lin-4e-3-huber-5-ez-2-iteration-10k-n-step-3",
 }
 #: The one config run unchanged on every env: the shipped file's entry for a new problem.

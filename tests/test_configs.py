@@ -42,18 +42,23 @@ def test_the_entries_are_the_configs_measured_for_them() -> None:
     assert (cartpole["round_fraction"], cartpole["round_fraction_offset"], cartpole["train_freq"]) == (0.4, 4000, 128)
     assert cartpole["batch_size"] == 128
     assert cartpole["callback"] == "sb3_nfq.KeepBestCallback" and "keep_best" not in cartpole
-    # LunarLander: nfq-short-rounds-lr-lin-4e-3-huber-5-n-step-3-critics-2-ucb-3-iteration-10k; MountainCar's has one
-    # network and no optimism, and adds repeated random actions
+    # LunarLander: nfq-LunarLander-v3-30k-trial-119, trial 119 of the study nfq-LunarLander-v3-30k: a memory of 10,000,
+    # half of it per fitted iteration, two networks collecting optimistically, epsilon held until the first termination
     lunar = read_entry("LunarLander-v3")
+    assert (lunar["buffer_size"], lunar["iteration_transitions"], lunar["train_freq"], lunar["gradient_steps"]) == (
+        10000,
+        5000,
+        128,
+        1,
+    )
     assert (lunar["loss"], lunar["huber_delta"], lunar["learning_rate"], lunar["n_steps"]) == (
         "huber",
-        5.0,
-        "lin_0.004",
+        1.0,
+        "lin_0.007607431015322478",
         3,
     )
-    assert (lunar.pop("exploration_ucb"), nfq_kwargs("LunarLander-v3")["policy_kwargs"]["n_critics"]) == (3.0, 2)
-    one_network = {**lunar, "policy_kwargs": mountain_car["policy_kwargs"]}
-    assert {**mountain_car, "n_timesteps": 0} == {**one_network, "n_timesteps": 0, "exploration_repeat_mu": 2.0}
+    assert (lunar["exploration_ucb"], nfq_kwargs("LunarLander-v3")["policy_kwargs"]["n_critics"]) == (1.0, 2)
+    assert lunar["exploration_start"] == "first_termination" and "max_grad_norm" not in lunar
     # Acrobot: nfq-front-loaded-batch-128-k12-first-termination-keep-best, CartPole's entry with 12 fitted iterations
     # per round and epsilon's schedule from the first termination
     acrobot_changes = {"gradient_steps": 12, "exploration_start": "first_termination"}

@@ -23,6 +23,7 @@ from stable_baselines3.common.type_aliases import TrainFreq
 
 from sb3_nfq import NFQ
 from sb3_nfq.configs import ZOO_FILE, nfq_kwargs, read_entry, zoo_to_kwargs
+from sb3_nfq.parameters import HYPERPARAMETERS
 from sb3_nfq.zoo import (
     ALGO_NAME,
     BUFFER_SIZES,
@@ -41,6 +42,8 @@ from sb3_nfq.zoo import (
 )
 
 ENV_ID = "CartPole-v1"
+#: The studies recorded by the benchmark's tuning runs (in the repository, not the wheel)
+TUNING_JOURNALS = Path(__file__).resolve().parent.parent / "benchmarks" / "results" / "tuning"
 #: One torch/BLAS thread per zoo process (the machine is shared).
 SINGLE_THREAD_ENV = {
     **os.environ,
@@ -222,41 +225,23 @@ def test_the_zoo_pages_search_space_table_lists_the_samplers_numeric_choices(
 
 
 @pytest.mark.filterwarnings("error:The value:UserWarning")  # FixedTrial's warning on a number outside its range
-def test_lunarlanders_shipped_entry_is_a_point_of_the_search_space() -> None:
-    # A study can queue the entry it tunes from, and a trial can reach it: its sampled fit and its ensemble included.
-    entry = read_entry("LunarLander-v3", DEFAULT_CONF_FILE)
-    assert entry["learning_rate"] == "lin_0.004" and entry["train_freq"] == 128
-    point = {
-        "learning_rate": 0.004,
-        "lr_schedule": "linear",
-        "fit_cost": entry["iteration_transitions"] / entry["train_freq"],  # one iteration per round
-        "exploration_initial_eps": entry["exploration_initial_eps"],
-        "exploration_final_eps": entry["exploration_final_eps"],
-        "exploration_fraction": entry["exploration_fraction"],
-        "net_arch": "medium",
-        "optimizer": "adam",
-        "n_critics": 2,
-        "exploration_ucb": entry["exploration_ucb"],
-        "train_freq": entry["train_freq"],
-        "memory": "growing",
-        "buffer_size": entry["buffer_size"],
-        "iteration_transitions": entry["iteration_transitions"],
-        "target_mode": entry["target_mode"],
-        "gamma": entry["gamma"],
-        "batch_size": entry["batch_size"],
-        "loss": "huber",
-        "huber_delta": entry["huber_delta"],
-        "max_grad_norm": entry["max_grad_norm"],
-        "exploration_repeat_mu": None,
-        "exploration_start": "first_step",
-        "n_steps": entry["n_steps"],
-    }
-    # The sampler itself, as a queued trial runs it: FixedTrial raises on a missing value or a category outside its
-    # choices, and warns (an error here) on a number outside its range.
-    hyperparams = sample_nfq_params(FixedTrial(point), 0, 1, {"using_her_replay_buffer": False, "her_kwargs": {}})
+def test_lunarlanders_shipped_entry_is_the_trial_of_its_study_that_its_comment_names(tmp_path: Path) -> None:
+    # The entry is trial 119 of nfq-LunarLander-v3-30k: the sampler, given that trial's stored values as a queued trial
+    # runs them, builds the entry's model. So a study can queue the entry it tunes from, and a trial can reach it.
+    journal = tmp_path / "LunarLander-v3.log"  # a copy: opening a journal may write beside it
+    journal.write_bytes((TUNING_JOURNALS / journal.name).read_bytes())
+    storage = optuna.storages.JournalStorage(JournalFileBackend(str(journal)))
+    trial = optuna.load_study(study_name="nfq-LunarLander-v3-30k", storage=storage).trials[119]
+    assert trial.state == TrialState.COMPLETE
+    assert "trial 119 of the Optuna study nfq-LunarLander-v3-30k" in DEFAULT_CONF_FILE.read_text()
+    # The sampler itself: FixedTrial raises on a missing value or a category outside its choices, and warns (an error
+    # here) on a number outside its range.
+    hyperparams = sample_nfq_params(
+        FixedTrial(trial.params), 0, 1, {"using_her_replay_buffer": False, "her_kwargs": {}}
+    )
     entry_model = NFQ("MlpPolicy", "LunarLander-v3", **nfq_kwargs("LunarLander-v3"))
     point_model = NFQ("MlpPolicy", "LunarLander-v3", **hyperparams)
-    for name in ("gradient_steps", "fit_epochs", "iteration_transitions", "buffer_size", "exploration_ucb", "n_steps"):
+    for name in sorted(HYPERPARAMETERS - {"learning_rate"}):
         assert getattr(point_model, name) == getattr(entry_model, name), name
     assert point_model.policy.n_critics == entry_model.policy.n_critics == 2
     assert point_model.policy.net_arch == entry_model.policy.net_arch

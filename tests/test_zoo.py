@@ -42,8 +42,10 @@ from sb3_nfq.zoo import (
 )
 
 ENV_ID = "CartPole-v1"
-#: The studies recorded by the benchmark's tuning runs (in the repository, not the wheel)
-TUNING_JOURNALS = Path(__file__).resolve().parent.parent / "benchmarks" / "results" / "tuning"
+#: The repository's root: the tests read its documentation and recorded studies, which the wheel does not hold.
+ROOT = Path(__file__).resolve().parent.parent
+#: The studies recorded by the benchmark's tuning runs
+TUNING_JOURNALS = ROOT / "benchmarks" / "results" / "tuning"
 #: One torch/BLAS thread per zoo process (the machine is shared).
 SINGLE_THREAD_ENV = {
     **os.environ,
@@ -53,7 +55,7 @@ SINGLE_THREAD_ENV = {
 }
 TIMEOUT_S = 300
 #: The zoo's documentation page, whose table lists the search space.
-ZOO_PAGE = Path(__file__).parents[1] / "docs" / "zoo.md"
+ZOO_PAGE = ROOT / "docs" / "zoo.md"
 #: Tiny tuning runs: trials of 1024 steps, evaluated once on 2 episodes, no plots.
 TINY_OPTIMIZE_ARGS = ["-optimize", "-n", "1024", "--n-evaluations", "1", "--eval-episodes", "2", "--no-optim-plots"]
 
